@@ -1,0 +1,71 @@
+"""The `yawil` command. Each sub-command lives in the module that owns the work.
+
+A command module exposes `add_parser(subparsers) -> argparse.ArgumentParser` and `run(args) -> int`.
+Command modules import only argparse at module level, so that `yawil --help` stays fast; the heavy
+imports (torch, panda3d) happen inside `run`.
+"""
+
+from __future__ import annotations
+
+import argparse
+import importlib
+import sys
+from collections.abc import Sequence
+
+# name -> module that owns it, in the order of the loop.
+COMMANDS: dict[str, str] = {
+    "sim": "yawil.sim.cli",
+    "collect": "yawil.data.collect_cli",
+    "data": "yawil.data.cli",
+    "models": "yawil.models.cli",
+    "train": "yawil.train_cli",
+    "export": "yawil.export",
+    "bench": "yawil.bench.cli",
+    "report": "yawil.bench.report_cli",
+    "experiment": "yawil.bench.experiments_cli",
+    "explain": "yawil.explain_cli",
+    "demo": "yawil.demo",
+    "reproduce": "yawil.reproduce",
+}
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="yawil",
+        description="Yaw-guided imitation learning: sim -> expert -> data -> train -> agent -> bench -> report.",
+    )
+    parser.add_argument("--version", action="version", version=f"yawil {_version()}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for name, module_name in COMMANDS.items():
+        try:
+            module = importlib.import_module(module_name)
+        except ModuleNotFoundError as err:
+            if err.name != module_name:
+                raise
+            continue  # not built yet: the command is simply absent from --help
+        p = module.add_parser(sub)
+        p.set_defaults(_run=module.run)
+    return parser
+
+
+def _version() -> str:
+    from yawil import __version__
+
+    return __version__
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "_run", None):
+        parser.print_help()
+        return 2
+    try:
+        return int(args._run(args) or 0)
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -210,6 +210,38 @@ def test_projection_with_hint_on_route_that_loops() -> None:
     assert np.allclose(g_back.yaw, 0.0) and g_out.yaw.max() > 1.0  # out leg reaches the left turn
 
 
+@pytest.mark.parametrize("step", [0.1, 1.0, 7.0])
+def test_compute_guidance_matches_the_building_blocks_on_the_whole_route(step: float) -> None:
+    """compute_guidance works on a slice ahead of the ego; it must equal the same maths on the full route."""
+    th = np.arange(0.0, 400.0, step) / 25.0
+    xy = np.column_stack((25.0 * np.sin(th), 25.0 * (1.0 - np.cos(th))))  # circles, driven many times
+    xy = np.vstack((xy[:40], xy[39:40], xy[40:]))  # a duplicate waypoint on the way
+    lane = wrap_to_pi(np.concatenate((th[:40], th[39:40], th[40:])))
+    cfg = GuidanceConfig(spacing=1.7, count=12)
+    for hint in (5, len(xy) // 2, len(xy) - 3):
+        ego = xy[hint] + [0.05, -0.05]
+        g, index = compute_guidance(xy, lane, ego, 0.3, BOUNDS, cfg, hint_index=hint)
+        _, s = project_on_route(xy, ego, hint_index=hint)
+        pts = resample_route(xy, s, cfg.spacing, cfg.count + 1)
+        lane_k = interpolate_lane_yaw(xy, lane, s + cfg.spacing * np.arange(cfg.count))
+        assert abs(index - hint) <= 1
+        assert angle_close(g.yaw, yaw_guidance(pts), atol=1e-5)
+        assert np.allclose(g.xy, xy_guidance(pts[:-1], BOUNDS), atol=1e-6)
+        assert angle_close(g.sim_yaw, sim_yaw_guidance(lane_k), atol=1e-5)
+
+
+def test_compute_guidance_past_duplicated_final_waypoints() -> None:
+    """Guidance starts at the ego's projection, clamped to the route end, then pads straight on."""
+    xy = np.array([[0.0, 0.0], [0.0, 5.0], [0.0, 10.0], [0.0, 10.0], [0.0, 10.0]])
+    g, index = compute_guidance(xy, np.full(5, math.pi / 2), [0.0, 12.0], math.pi / 2, BOUNDS, hint_index=4)
+    assert index == 1 and np.all(g.yaw == 0.0)
+    assert g.xy[1] == pytest.approx(0.01) and g.xy[-1] == pytest.approx((10.0 + 2.0 * 14) / 1000.0)
+    # So many trailing duplicates that the hint window sees only zero-length segments.
+    xy = np.vstack((xy[:3], np.repeat(xy[2:3], 80, axis=0)))
+    g2, index2 = compute_guidance(xy, np.full(len(xy), 1.0), [0.0, 12.0], 0.0, BOUNDS, hint_index=len(xy) - 1)
+    assert index2 > 2 and np.array_equal(g2.xy, g.xy) and np.array_equal(g2.yaw, g.yaw)
+
+
 def test_interpolate_lane_yaw_is_circular() -> None:
     xy = np.column_stack((np.arange(3.0), np.zeros(3)))
     lane = np.array([math.pi - 0.1, -math.pi + 0.1, -math.pi + 0.1])

@@ -178,7 +178,13 @@ def project_on_route(
     that passes the same place twice is tracked on the right pass. Ties go to the lowest index.
     """
     route = _points("route_xy", route_xy)
-    p = _vector("point_xy", point_xy, n=2)
+    i, t = _project(route, _vector("point_xy", point_xy, n=2), hint_index, window)
+    seg, cum = _arc_lengths(route[: i + 2])
+    return i, float(cum[i] + t * seg[i])
+
+
+def _project(route: np.ndarray, p: np.ndarray, hint_index: int | None, window: int) -> tuple[int, float]:
+    """(segment index, fraction along it) of the nearest point, searching near the hint if there is one."""
     n_seg = route.shape[0] - 1
     lo, hi = 0, n_seg
     if hint_index is not None:
@@ -196,9 +202,22 @@ def project_on_route(
     nearest = a + t[:, None] * ab
     dist2 = np.einsum("ij,ij->i", p - nearest, p - nearest)
     j = int(np.argmin(dist2))
-    seg, cum = _arc_lengths(route)
-    i = lo + j
-    return i, float(cum[i] + t[j] * seg[i])
+    return lo + j, float(t[j])
+
+
+def _ahead(route: np.ndarray, index: int, start_s: float, needed: float) -> int:
+    """End (exclusive) of a route slice from `index` long enough to hold `needed` metres past `start_s`.
+
+    Guidance only looks K * spacing ahead, so working on a short slice keeps a frame O(K), not O(route).
+    """
+    n = route.shape[0]
+    m = 32
+    while True:
+        end = min(n, index + m + 1)
+        length = float(np.linalg.norm(np.diff(route[index:end], axis=0), axis=1).sum())
+        if end == n or length >= start_s + needed:
+            return end
+        m *= 2
 
 
 def _clean(
@@ -312,10 +331,17 @@ def compute_guidance(
         raise ValueError(f"yaw_noise_deg={sigma} needs rng as a numpy Generator, got {rng!r}")
 
     k = config.count
-    index, s = project_on_route(route, ego, hint_index=hint_index)
-    points = resample_route(route, s, config.spacing, k + 1)
+    index, t = _project(route, ego, hint_index, window=50)
+    # Work on the slice from the ego's segment on: s is measured from route[index].
+    s = t * float(np.linalg.norm(route[index + 1] - route[index]))
+    end = _ahead(route, index, s, config.spacing * (k + 1))
+    local, local_lane = route[index:end], lane[index:end]
+    if not np.any(np.diff(local, axis=0)):  # the ego is on duplicates of the final point: the route's end
+        local, local_lane = route, lane
+        s = float(_arc_lengths(route)[1][-1])
+    points = resample_route(local, s, config.spacing, k + 1)
     s_k = s + config.spacing * np.arange(k, dtype=np.float64)
-    lane_k = interpolate_lane_yaw(route, lane, s_k)
+    lane_k = interpolate_lane_yaw(local, local_lane, s_k)
     noise = None
     if sigma > 0.0:
         assert rng is not None

@@ -1,0 +1,112 @@
+"""`yawil bench`: run a suite (default action), or generate / validate the committed route files.
+
+    yawil bench --suite nocrash --condition new-town-weather --agent runs/yilratt/best.pt --out results/yilratt
+    yawil bench routes --town town01          # regenerate src/yawil/bench/routes/town01.json
+    yawil bench validate --town town02        # check a route file against the current planner
+"""
+
+from __future__ import annotations
+
+import argparse
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:  # type: ignore[type-arg]
+    p = subparsers.add_parser(
+        "bench",
+        help="run the CoRL2017 / NoCrash / square benchmark suites; manage route files",
+        description="Run benchmark episodes (one JSON line each in OUT/episodes.jsonl, resumable), or "
+        "`routes` to generate the route files, `validate` to check them with the current planner.",
+    )
+    p.add_argument("action", nargs="?", default="run", choices=("run", "routes", "validate"))
+    p.add_argument("--suite", default="nocrash", help="corl2017 | nocrash | all | square (default nocrash)")
+    p.add_argument(
+        "--condition",
+        action="append",
+        default=None,
+        help="training | new-town-weather (square for the square suite); repeat or comma-separate; default: all of the suite",
+    )
+    p.add_argument("--agent", default="expert", help="'expert' or a checkpoint path (default expert)")
+    p.add_argument("--seeds", type=int, default=None, help="seeds per episode (default: protocol, 5 static / 3 dynamic)")
+    p.add_argument("--workers", type=int, default=1, help="processes driving episodes in parallel (default 1)")
+    p.add_argument("--out", default=None, help="results folder (default results/<agent name>)")
+    p.add_argument("--label", default=None, help="column name in reports (default: the folder name)")
+    p.add_argument("--tasks", default=None, help="comma-separated subset of the suite's tasks")
+    p.add_argument("--routes", default=None, help="route ids, as a slice 0:5 or a list 1,4,7")
+    p.add_argument(
+        "--camera",
+        action=argparse.BooleanOptionalAction,
+        default=None,
+        help="render the camera (default: on for learned agents, off for the expert, which needs no pixels)",
+    )
+    p.add_argument("--record", action="store_true", help="save a video per episode (camera + bird's-eye) in OUT/videos")
+    p.add_argument("--yaw-noise-deg", type=float, default=0.0, help="Gaussian noise sigma on guidance yaw (degrees)")
+    p.add_argument("--command-noise-p", type=float, default=0.0, help="probability of a 5-frame wrong command")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--town", default=None, help="routes/validate: town01 | town02 | square (default: all three)")
+    p.add_argument("--routes-dir", default=None, help="routes/validate: folder of route files (default: the package's)")
+    p.add_argument("--seed", type=int, default=0, help="routes: seed of the route draw (default 0)")
+    return p
+
+
+def _split(values: list[str] | None) -> list[str] | None:
+    if not values:
+        return None
+    return [v.strip() for item in values for v in item.split(",") if v.strip()]
+
+
+def run(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    try:
+        if args.action == "routes":
+            from yawil.bench.routegen import write_route_file
+
+            for town in [args.town] if args.town else ["town01", "town02", "square"]:
+                path = write_route_file(town, seed=args.seed, folder=Path(args.routes_dir) if args.routes_dir else None)
+                print(f"wrote {path}")
+            return 0
+        if args.action == "validate":
+            from yawil.bench.routegen import validate_with_planner
+
+            for town in [args.town] if args.town else ["town01", "town02", "square"]:
+                n = validate_with_planner(town, folder=Path(args.routes_dir) if args.routes_dir else None)
+                print(f"{town}: {n} routes valid")
+            return 0
+        return _run_suite(args)
+    except ValueError as err:
+        raise SystemExit(f"yawil bench: {err}") from None
+
+
+def _run_suite(args: argparse.Namespace) -> int:
+    from pathlib import Path
+
+    from yawil.bench.runner import AgentSpec, run_benchmark
+    from yawil.bench.suites import episodes
+
+    spec = AgentSpec(args.agent, args.yaw_noise_deg, args.command_noise_p).validate()
+    eps = episodes(
+        args.suite,
+        conditions=_split(args.condition),
+        tasks=_split([args.tasks] if args.tasks else None),
+        routes=args.routes,
+        seeds=args.seeds,
+        routes_folder=Path(args.routes_dir) if args.routes_dir else None,
+    )
+    out = Path(args.out) if args.out else Path("results") / (
+        "expert" if spec.is_expert else Path(args.agent).resolve().parent.name
+    )
+    summary = run_benchmark(
+        eps,
+        spec,
+        out,
+        workers=args.workers,
+        camera=args.camera,
+        record=args.record,
+        progress=not args.no_progress,
+        label=args.label,
+    )
+    print(
+        f"{summary.total} episodes: {summary.skipped} already done, {summary.ran} run now "
+        f"({summary.successes} successful) in {summary.wall_s:.1f} s; results in {out}/episodes.jsonl"
+    )
+    return 0

@@ -1,0 +1,158 @@
+"""The results folder: an append-only JSON-lines file of episode records plus a small run description.
+
+Why append-only: a benchmark takes hours and may be killed at any time. Each record is written as one line,
+flushed and fsynced before the next episode counts as done, so a kill loses at most the episodes in flight.
+On restart the file is read, a partial last line (the kill hit mid-write) is cut off, and the episodes whose
+keys are present are skipped: nothing is repeated, nothing is lost.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Iterator, Mapping
+from pathlib import Path
+from typing import Any, TextIO
+
+EPISODES_FILE = "episodes.jsonl"
+RUN_FILE = "run.json"
+KEY_FIELDS: tuple[str, ...] = ("task", "condition", "route_id", "seed")
+
+
+def episode_key(rec: Mapping[str, Any]) -> str:
+    """Identity of an episode: task, condition, route and seed (the agent is fixed per results folder)."""
+    try:
+        return "/".join(str(rec[k]) for k in KEY_FIELDS)
+    except KeyError as err:
+        raise ValueError(f"episode record lacks key field {err.args[0]!r}") from None
+
+
+def read_records(path: str | Path, repair: bool = False) -> list[dict[str, Any]]:
+    """All complete records of a JSON-lines file.
+
+    A last line without its newline or that does not parse is the trace of a kill mid-write: it is ignored,
+    and cut from the file when `repair` is True so that appending continues on a clean line. A bad line
+    anywhere else is corruption and raises ValueError naming the file and line.
+    """
+    path = Path(path)
+    if not path.exists():
+        return []
+    data = path.read_bytes()
+    records: list[dict[str, Any]] = []
+    pos = 0
+    lineno = 0
+    good_end = 0
+    while pos < len(data):
+        lineno += 1
+        nl = data.find(b"\n", pos)
+        last = nl < 0 or nl == len(data) - 1
+        chunk = data[pos:] if nl < 0 else data[pos:nl]
+        try:
+            if nl < 0:
+                raise ValueError("no newline")
+            rec = json.loads(chunk.decode("utf-8")) if chunk.strip() else None
+            if rec is not None and not isinstance(rec, dict):
+                raise ValueError("not a JSON object")
+        except (ValueError, UnicodeDecodeError) as err:
+            if last:
+                break  # partial last line: ignored (and cut below if repairing)
+            raise ValueError(f"{path}: line {lineno} is not a valid episode record ({err})") from None
+        if rec is not None:
+            records.append(rec)
+        pos = nl + 1
+        good_end = pos
+    if repair and good_end < len(data):
+        with open(path, "r+b") as fh:
+            fh.truncate(good_end)
+            fh.flush()
+            os.fsync(fh.fileno())
+    return records
+
+
+class EpisodeLog:
+    """Appends records to `<folder>/episodes.jsonl`, durable per line; knows which keys are done."""
+
+    def __init__(self, folder: str | Path) -> None:
+        self.folder = Path(folder)
+        self.folder.mkdir(parents=True, exist_ok=True)
+        self.path = self.folder / EPISODES_FILE
+        self.records = read_records(self.path, repair=True)
+        self.done: set[str] = set()
+        for i, rec in enumerate(self.records):
+            key = episode_key(rec)
+            if key in self.done:
+                raise ValueError(f"{self.path}: record {i + 1} repeats episode {key}")
+            self.done.add(key)
+        self._fh: TextIO | None = None
+
+    def __contains__(self, key: str) -> bool:
+        return key in self.done
+
+    def append(self, rec: Mapping[str, Any]) -> None:
+        key = episode_key(rec)
+        if key in self.done:
+            raise ValueError(f"episode {key} is already in {self.path}")
+        line = json.dumps(rec, separators=(",", ":"), allow_nan=False)
+        if "\n" in line:
+            raise ValueError("an episode record must serialise to one line")
+        if self._fh is None:
+            self._fh = open(self.path, "a", encoding="utf-8")
+        self._fh.write(line + "\n")
+        self._fh.flush()
+        os.fsync(self._fh.fileno())
+        self.done.add(key)
+        self.records.append(dict(rec))
+
+    def close(self) -> None:
+        if self._fh is not None:
+            self._fh.close()
+            self._fh = None
+
+    def __enter__(self) -> EpisodeLog:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def write_json_atomic(path: str | Path, obj: Any) -> None:
+    """Write JSON to a temporary file in the same folder, fsync, then rename over `path`."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(f".{path.name}.tmp{os.getpid()}")
+    with open(tmp, "w", encoding="utf-8") as fh:
+        json.dump(obj, fh, indent=2, sort_keys=True)
+        fh.write("\n")
+        fh.flush()
+        os.fsync(fh.fileno())
+    os.replace(tmp, path)
+
+
+def check_run_info(folder: str | Path, info: Mapping[str, Any]) -> None:
+    """Store the agent's identity with the results, or check that a resumed run uses the same agent.
+
+    Mixing two agents' episodes in one folder would make its figures meaningless, so it is an error.
+    """
+    path = Path(folder) / RUN_FILE
+    if path.exists():
+        try:
+            old = json.loads(path.read_text(encoding="utf-8"))
+        except ValueError as err:
+            raise ValueError(f"{path}: not valid JSON ({err})") from None
+        for key in ("agent", "agent_options"):
+            if old.get(key) != info.get(key):
+                raise ValueError(
+                    f"{path}: results folder belongs to {key}={old.get(key)!r}, this run has {info.get(key)!r}; "
+                    "use another --out folder"
+                )
+        return
+    write_json_atomic(path, dict(info))
+
+
+def iter_results(folder: str | Path) -> Iterator[dict[str, Any]]:
+    """Records of a results folder (or of a JSON-lines file given directly)."""
+    p = Path(folder)
+    path = p / EPISODES_FILE if p.is_dir() else p
+    if not path.exists():
+        raise ValueError(f"{folder}: no {EPISODES_FILE} found (expected a folder written by `yawil bench`)")
+    yield from read_records(path)

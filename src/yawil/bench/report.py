@@ -1,0 +1,340 @@
+"""Tables shaped as the paper's (III: success rate; IV: lane and light violations) and plots, in Markdown and
+in one self-contained HTML page (images embedded as base64 PNG).
+
+Each results folder is one column (one agent). Cells follow the protocol: static tasks are the best of their
+seeds, dynamic tasks mean +- std over seeds; violations count successful episodes only (yawil.bench.metrics).
+"""
+
+from __future__ import annotations
+
+import base64
+import html
+import io
+import json
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from yawil.bench.metrics import FAILURE_REASONS, failure_counts, task_success, task_violations
+from yawil.bench.records import RUN_FILE, iter_results, write_json_atomic
+from yawil.bench.suites import CONDITIONS, TABLE_TASKS, TASKS
+
+
+@dataclass
+class ResultSet:
+    """The records of one results folder, labelled for the table columns."""
+
+    label: str
+    folder: Path
+    records: list[dict[str, Any]]
+
+    def select(self, task: str, condition: str) -> list[dict[str, Any]]:
+        return [r for r in self.records if r["task"] == task and r["condition"] == condition]
+
+
+def load_results(folder: str | Path) -> ResultSet:
+    folder = Path(folder)
+    records = list(iter_results(folder))
+    label = folder.name
+    info = folder / RUN_FILE
+    if info.exists():
+        try:
+            label = str(json.loads(info.read_text(encoding="utf-8")).get("label") or label)
+        except ValueError as err:
+            raise ValueError(f"{info}: not valid JSON ({err})") from None
+    return ResultSet(label, folder, records)
+
+
+def _unique_labels(sets: Sequence[ResultSet]) -> None:
+    seen: dict[str, int] = {}
+    for rs in sets:
+        n = seen.get(rs.label, 0)
+        seen[rs.label] = n + 1
+        if n:
+            rs.label = f"{rs.label} ({n + 1})"
+
+
+def _present(sets: Sequence[ResultSet]) -> tuple[list[str], list[str]]:
+    """Conditions and tasks that have at least one record, in the paper's order."""
+    conds = [c for c in CONDITIONS if any(r["condition"] == c for rs in sets for r in rs.records)]
+    tasks = [t for t in (*TABLE_TASKS, "square") if any(r["task"] == t for rs in sets for r in rs.records)]
+    return conds, tasks
+
+
+@dataclass
+class Table:
+    title: str
+    header: list[str]
+    rows: list[list[str]]
+    note: str = ""
+
+    def markdown(self) -> str:
+        lines = [f"### {self.title}", "", "| " + " | ".join(self.header) + " |", "|" + "---|" * len(self.header)]
+        lines += ["| " + " | ".join(r) + " |" for r in self.rows]
+        if self.note:
+            lines += ["", self.note]
+        return "\n".join(lines) + "\n"
+
+    def html(self) -> str:
+        head = "".join(f"<th>{html.escape(h)}</th>" for h in self.header)
+        body = "".join("<tr>" + "".join(f"<td>{html.escape(c)}</td>" for c in r) + "</tr>" for r in self.rows)
+        note = f"<p class='note'>{html.escape(self.note)}</p>" if self.note else ""
+        return f"<h3>{html.escape(self.title)}</h3><table><tr>{head}</tr>{body}</table>{note}"
+
+
+def _columns(sets: Sequence[ResultSet], conds: Sequence[str]) -> list[tuple[str, ResultSet]]:
+    return [(c, rs) for c in conds for rs in sets]
+
+
+def _header(first: Sequence[str], cols: Sequence[tuple[str, ResultSet]]) -> list[str]:
+    return [*first, *(f"{CONDITIONS[c].title}: {rs.label}" for c, rs in cols)]
+
+
+def success_table(sets: Sequence[ResultSet]) -> Table:
+    """Table III: success rate (%) per task and condition, one column per agent."""
+    conds, tasks = _present(sets)
+    cols = _columns(sets, conds)
+    rows = []
+    seeds_used: set[str] = set()
+    for t in tasks:
+        task = TASKS[t]
+        row = [task.title]
+        for c, rs in cols:
+            recs = rs.select(t, c)
+            if not recs:
+                row.append("—")
+                continue
+            stat = task_success(recs, task.dynamic)
+            seeds_used.add(f"{task.title}: {stat.n_seeds}")
+            row.append(stat.format(2))
+        rows.append(row)
+    note = (
+        "Success rate in %. Static tasks: best of the seeds; dynamic tasks: mean ± population std over seeds. "
+        "Seeds per task: " + ", ".join(sorted(seeds_used)) + "."
+    )
+    return Table("Table III: navigation success rate (%)", _header(["Task"], cols), rows, note)
+
+
+def violations_table(sets: Sequence[ResultSet]) -> Table:
+    """Table IV: lane violations per km and traffic-light violation ratio, successful episodes only."""
+    conds, tasks = _present(sets)
+    cols = _columns(sets, conds)
+    rows = []
+    for metric in ("Lane violations (per km)", "Traffic-light violations (red / passed)"):
+        for t in tasks:
+            row = [metric, TASKS[t].title]
+            for c, rs in cols:
+                recs = rs.select(t, c)
+                if not recs:
+                    row.append("—")
+                    continue
+                lanes, lights = task_violations(recs)
+                row.append((lanes if metric.startswith("Lane") else lights).format(2))
+            rows.append(row)
+    note = (
+        "Successful episodes only, pooled per seed (entries into the opposite lane or off the road / km driven; "
+        "red lights crossed / signalised stop lines passed), then mean ± population std over seeds; "
+        "n/a: no successful episode (or no light passed)."
+    )
+    return Table("Table IV: lane and traffic-light violations", _header(["Metric", "Task"], cols), rows, note)
+
+
+def outcome_table(sets: Sequence[ResultSet]) -> Table:
+    """How the episodes ended, all seeds together: the failure reasons behind Table III."""
+    conds, tasks = _present(sets)
+    rows = []
+    for c in conds:
+        for t in tasks:
+            for rs in sets:
+                recs = rs.select(t, c)
+                if not recs:
+                    continue
+                counts = failure_counts(recs)
+                km = sum(float(r["km_driven"]) for r in recs)
+                rows.append(
+                    [CONDITIONS[c].title, TASKS[t].title, rs.label, str(len(recs)), str(counts["success"])]
+                    + [str(counts.get(k, 0)) for k in FAILURE_REASONS]
+                    + [f"{km:.1f}"]
+                )
+    header = ["Condition", "Task", "Agent", "Episodes", "Success", *FAILURE_REASONS, "km driven"]
+    return Table("Episode outcomes (all seeds)", header, rows)
+
+
+# ----- plots -------------------------------------------------------------------------------------------------
+
+
+def _png(fig: Any) -> bytes:
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110, bbox_inches="tight")
+    import matplotlib.pyplot as plt
+
+    plt.close(fig)
+    return buf.getvalue()
+
+
+def success_plot(sets: Sequence[ResultSet]) -> bytes:
+    """Bars of success rate per task, one panel per condition, one bar per agent (error bars: dynamic std)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    conds, tasks = _present(sets)
+    fig, axes = plt.subplots(1, max(1, len(conds)), figsize=(5.5 * max(1, len(conds)), 3.8), squeeze=False)
+    width = 0.8 / max(1, len(sets))
+    for ax, c in zip(axes[0], conds, strict=False):
+        x = np.arange(len(tasks))
+        for i, rs in enumerate(sets):
+            vals, errs = [], []
+            for t in tasks:
+                recs = rs.select(t, c)
+                if recs:
+                    st = task_success(recs, TASKS[t].dynamic)
+                    vals.append(st.value)
+                    errs.append(st.std or 0.0)
+                else:
+                    vals.append(0.0)
+                    errs.append(0.0)
+            ax.bar(x + (i - (len(sets) - 1) / 2) * width, vals, width, yerr=errs, capsize=3, label=rs.label)
+        ax.set_xticks(x, [TASKS[t].title for t in tasks], rotation=20, ha="right", fontsize=8)
+        ax.set_ylim(0, 105)
+        ax.set_ylabel("success rate (%)")
+        ax.set_title(CONDITIONS[c].title)
+        ax.grid(axis="y", alpha=0.3)
+    axes[0][0].legend(fontsize=8)
+    fig.tight_layout()
+    return _png(fig)
+
+
+def choose_episodes(sets: Sequence[ResultSet], condition: str, spec: str | None) -> tuple[str, int, int] | None:
+    """(task, route id, seed) to draw: `spec` as 'task/route/seed', else route 0 seed 0 of the hardest task run."""
+    if spec:
+        parts = spec.split("/")
+        if len(parts) != 3:
+            raise ValueError(f"--trajectory {spec!r}: expected task/route/seed, e.g. dense/3/0")
+        try:
+            return parts[0], int(parts[1]), int(parts[2])
+        except ValueError:
+            raise ValueError(f"--trajectory {spec!r}: route and seed must be integers") from None
+    for t in ("dense", "regular", "navigation", "one_turn", "straight", "square"):
+        for rs in sets:
+            hits = sorted((r["route_id"], r["seed"]) for r in rs.select(t, condition) if r.get("trajectory"))
+            if hits:
+                return t, hits[0][0], hits[0][1]
+    return None
+
+
+def trajectory_plot(sets: Sequence[ResultSet], condition: str, spec: str | None = None) -> bytes | None:
+    """The driven paths of every agent on one episode over the bird's-eye map (as the paper's Figure 6)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+
+    chosen = choose_episodes(sets, condition, spec)
+    if chosen is None:
+        return None
+    task, rid, seed = chosen
+    recs = [
+        (rs.label, r)
+        for rs in sets
+        for r in rs.select(task, condition)
+        if r["route_id"] == rid and r["seed"] == seed and r.get("trajectory")
+    ]
+    if not recs:
+        return None
+    town = CONDITIONS[condition].town
+    fig = _map_figure(town)
+    ax = fig.axes[0]
+    route = recs[0][1].get("route_xy") or []
+    if route:
+        xs, ys = zip(*route, strict=True)
+        ax.plot(xs, ys, color="0.5", lw=4, alpha=0.6, label="planned route", zorder=5)
+        ax.plot([xs[0]], [ys[0]], "o", color="green", ms=8, zorder=7)
+        ax.plot([xs[-1]], [ys[-1]], "*", color="gold", ms=14, mec="k", zorder=7)
+    for label, r in recs:
+        xs, ys = zip(*r["trajectory"], strict=True)
+        ok = "success" if r["success"] else r.get("reason")
+        ax.plot(xs, ys, lw=1.8, label=f"{label} ({ok})", zorder=6)
+    ax.set_title(f"{CONDITIONS[condition].title}: {TASKS[task].title}, route {rid}, seed {seed}", fontsize=9)
+    ax.legend(fontsize=7, loc="best")
+    return _png(fig)
+
+
+def _map_figure(town: str) -> Any:
+    """The town's bird's-eye map when the simulator can draw it, else empty equal-aspect axes."""
+    import matplotlib.pyplot as plt
+
+    try:
+        from yawil.sim.town.birdseye import draw_birdseye
+        from yawil.sim.town.layout import load_town_geometry  # type: ignore[attr-defined]
+    except ImportError:
+        fig, ax = plt.subplots(figsize=(7, 7))
+        ax.set_aspect("equal")
+        return fig
+    fig = draw_birdseye(load_town_geometry(town))
+    return fig
+
+
+# ----- writing -----------------------------------------------------------------------------------------------
+
+_CSS = (
+    "body{font-family:sans-serif;max-width:1200px;margin:2em auto;}table{border-collapse:collapse;margin:1em 0;}"
+    "td,th{border:1px solid #bbb;padding:3px 8px;text-align:center;font-size:13px;}th{background:#eee;}"
+    ".note{font-size:12px;color:#555;}img{max-width:100%;}"
+)
+
+
+def write_report(
+    folders: Sequence[str | Path], out: str | Path, trajectories: Mapping[str, str] | None = None
+) -> dict[str, Path]:
+    """Write report.md, report.html, the PNG plots and summary.json into `out`; returns their paths."""
+    sets = [load_results(f) for f in folders]
+    if not sets:
+        raise ValueError("report needs at least one results folder")
+    for rs in sets:
+        if not rs.records:
+            raise ValueError(f"{rs.folder}: no episode records yet")
+    _unique_labels(sets)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    tables = [success_table(sets), violations_table(sets), outcome_table(sets)]
+    images: list[tuple[str, str, bytes]] = [("success.png", "Success rate per task", success_plot(sets))]
+    conds, _ = _present(sets)
+    for c in conds:
+        png = trajectory_plot(sets, c, (trajectories or {}).get(c))
+        if png is not None:
+            images.append((f"trajectories_{c}.png", f"Trajectories, {CONDITIONS[c].title}", png))
+    paths: dict[str, Path] = {}
+    for name, _title, data in images:
+        p = out / name
+        tmp = p.with_name(f".{name}.tmp")
+        tmp.write_bytes(data)
+        tmp.replace(p)
+        paths[name] = p
+    sources = ", ".join(f"{rs.label} = `{rs.folder}` ({len(rs.records)} episodes)" for rs in sets)
+    md = ["# Benchmark report", "", f"Results: {sources}.", ""]
+    md += [t.markdown() for t in tables]
+    md += [f"![{title}]({name})\n" for name, title, _ in images]
+    _write_text(out / "report.md", "\n".join(md))
+    body = [f"<h1>Benchmark report</h1><p>Results: {html.escape(sources)}.</p>"]
+    body += [t.html() for t in tables]
+    for _name, title, data in images:
+        b64 = base64.b64encode(data).decode("ascii")
+        body.append(f"<h3>{html.escape(title)}</h3><img alt='{html.escape(title)}' src='data:image/png;base64,{b64}'>")
+    page = f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>yawil benchmark report</title><style>{_CSS}</style></head><body>{''.join(body)}</body></html>\n"
+    _write_text(out / "report.html", page)
+    summary = {
+        "folders": [str(rs.folder) for rs in sets],
+        "tables": [{"title": t.title, "header": t.header, "rows": t.rows} for t in tables],
+    }
+    write_json_atomic(out / "summary.json", summary)
+    paths.update({"report.md": out / "report.md", "report.html": out / "report.html", "summary.json": out / "summary.json"})
+    return paths
+
+
+def _write_text(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(text, encoding="utf-8")
+    tmp.replace(path)

@@ -1,0 +1,45 @@
+"""`yawil report RESULTS_DIR [RESULTS_DIR ...] --out report/`: Tables III and IV, plots, Markdown and HTML."""
+
+from __future__ import annotations
+
+import argparse
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:  # type: ignore[type-arg]
+    p = subparsers.add_parser(
+        "report",
+        help="tables (as the paper's III and IV) and plots from benchmark results",
+        description="Build report.md, report.html (self-contained) and PNG plots from results folders written "
+        "by `yawil bench`; each folder is one column (one agent).",
+    )
+    p.add_argument("results", nargs="+", help="results folders (each holds episodes.jsonl)")
+    p.add_argument("--out", default="report", help="output folder (default: report)")
+    p.add_argument(
+        "--trajectory",
+        action="append",
+        default=[],
+        metavar="CONDITION=TASK/ROUTE/SEED",
+        help="episode whose trajectories are drawn for a condition, e.g. new-town-weather=dense/3/0 "
+        "(default: route 0, seed 0 of the hardest task run)",
+    )
+    return p
+
+
+def run(args: argparse.Namespace) -> int:
+    from yawil.bench.report import write_report
+    from yawil.bench.suites import get_condition
+
+    chosen: dict[str, str] = {}
+    for item in args.trajectory:
+        cond, sep, spec = item.partition("=")
+        if not sep:
+            raise SystemExit(f"--trajectory {item!r}: expected CONDITION=TASK/ROUTE/SEED")
+        get_condition(cond)
+        chosen[cond] = spec
+    try:
+        paths = write_report(args.results, args.out, chosen)
+    except ValueError as err:
+        raise SystemExit(f"yawil report: {err}") from None
+    print((paths["report.md"]).read_text(encoding="utf-8"))
+    print(f"wrote {', '.join(str(p) for p in paths.values())}")
+    return 0

@@ -1,0 +1,340 @@
+"""Runs benchmark episodes and appends one JSON line per finished episode to the results folder.
+
+- One world and one agent per process; `workers > 1` runs episodes in spawned processes while the main
+  process alone writes the file (so lines never interleave).
+- Resume: episodes whose key is already in the file are skipped; see `yawil.bench.records`.
+- The camera is on for learned agents and off for the expert (it drives from privileged state and needs no
+  pixels); `camera=True` forces it (e.g. to record videos of the expert).
+- Agent and world seeds per episode come from `Episode.world_seed`, so a rerun gives the same records.
+"""
+
+from __future__ import annotations
+
+import inspect
+import os
+import time
+from collections.abc import Callable, Mapping, Sequence
+from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
+from dataclasses import dataclass, field
+from multiprocessing import get_context
+from pathlib import Path
+from typing import Any, Protocol
+
+from yawil.bench.metrics import EpisodeTracker, subsample_route
+from yawil.bench.records import EpisodeLog, check_run_info, episode_key
+from yawil.bench.suites import Episode
+from yawil.sim.types import Control, Observation, World
+
+EXPERT = "expert"
+
+
+class DrivingAgent(Protocol):
+    def reset(self) -> None: ...
+
+    def act(self, obs: Observation) -> Control: ...
+
+
+@dataclass(frozen=True)
+class AgentSpec:
+    """What drives: 'expert' or a checkpoint path, plus the noise options of the robustness experiment."""
+
+    agent: str
+    yaw_noise_deg: float = 0.0
+    command_noise_p: float = 0.0
+
+    @property
+    def is_expert(self) -> bool:
+        return self.agent == EXPERT
+
+    def options(self) -> dict[str, float]:
+        return {"yaw_noise_deg": self.yaw_noise_deg, "command_noise_p": self.command_noise_p}
+
+    def validate(self) -> AgentSpec:
+        if not self.is_expert and not Path(self.agent).is_file():
+            raise ValueError(f"--agent {self.agent!r}: expected 'expert' or the path of a checkpoint file")
+        if self.is_expert and (self.yaw_noise_deg or self.command_noise_p):
+            raise ValueError("noise options apply to learned agents, not to the expert")
+        if self.yaw_noise_deg < 0 or not 0 <= self.command_noise_p <= 1:
+            raise ValueError(
+                f"yaw_noise_deg must be >= 0 and command_noise_p in [0, 1], got {self.yaw_noise_deg}, {self.command_noise_p}"
+            )
+        return self
+
+    def identity(self) -> str:
+        return EXPERT if self.is_expert else str(Path(self.agent).resolve())
+
+    def build(self, seed: int) -> DrivingAgent:
+        """A fresh agent; learned agents get the episode's seed for their noise."""
+        if self.is_expert:
+            from yawil.expert import Expert
+
+            return Expert()
+        from yawil.agent import Agent
+
+        return Agent.from_checkpoint(  # type: ignore[no-any-return]
+            self.agent, yaw_noise_deg=self.yaw_noise_deg, command_noise_p=self.command_noise_p, seed=seed
+        )
+
+
+@dataclass
+class EpisodeDriver:
+    """A world and an agent kept for many episodes of one process."""
+
+    spec: AgentSpec
+    camera: bool
+    record_dir: Path | None = None
+    world_factory: Callable[[], World] | None = None
+    _world: World | None = None
+    _agent: DrivingAgent | None = None
+    _reset_takes_seed: bool = False
+    _noisy: bool = field(init=False, default=False)
+
+    def __post_init__(self) -> None:
+        self._noisy = bool(self.spec.yaw_noise_deg or self.spec.command_noise_p)
+
+    def world(self) -> World:
+        if self._world is None:
+            if self.world_factory is not None:
+                self._world = self.world_factory()
+            else:
+                from yawil.sim import make_world
+
+                self._world = make_world(backend="embedded")
+        return self._world
+
+    def agent(self, seed: int) -> DrivingAgent:
+        """Reuse the agent; rebuild it per episode only when its noise needs a per-episode seed it cannot take."""
+        if self._agent is None or (self._noisy and not self._reset_takes_seed):
+            self._agent = self.spec.build(seed)
+            self._reset_takes_seed = "seed" in inspect.signature(self._agent.reset).parameters
+        if self._reset_takes_seed:
+            self._agent.reset(seed=seed)  # type: ignore[call-arg]
+        else:
+            self._agent.reset()
+        return self._agent
+
+    def run(self, ep: Episode) -> dict[str, Any]:
+        world = self.world()
+        wall0 = time.perf_counter()
+        obs = world.reset(ep.scenario(self.camera), seed=ep.world_seed)
+        agent = self.agent(ep.world_seed)
+        goal = obs.route.xy[-1]
+        tracker = EpisodeTracker(goal_xy=(float(goal[0]), float(goal[1])), timeout_s=ep.timeout_s)
+        tracker.start(obs)
+        recorder = _Recorder(obs) if self.record_dir is not None else None
+        while True:
+            if recorder is not None:
+                recorder.add(obs)
+            obs = world.step(agent.act(obs))
+            if tracker.update(obs):
+                break
+        if recorder is not None and self.record_dir is not None:
+            recorder.add(obs)
+            video = recorder.write(self.record_dir / ep.key.replace("/", "_"))
+        else:
+            video = None
+        rec: dict[str, Any] = {
+            "suite": ep.suite,
+            "task": ep.task,
+            "condition": ep.condition,
+            "route_id": ep.route_id,
+            "town": ep.town,
+            "weather": ep.weather,
+            "seed": ep.seed,
+            "world_seed": ep.world_seed,
+            "agent": self.spec.identity(),
+            "agent_options": self.spec.options(),
+            "camera": self.camera,
+            "vehicles": ep.vehicles,
+            "pedestrians": ep.pedestrians,
+            "route_length_m": ep.route.length_m,
+            "planned_length_m": round(obs.route.length, 2),
+            "timeout_s": round(ep.timeout_s, 2),
+            **tracker.result(),
+            "route_xy": subsample_route(obs.route.xy),
+            "wall_s": round(time.perf_counter() - wall0, 3),
+            "video": video,
+        }
+        return rec
+
+    def close(self) -> None:
+        if self._world is not None:
+            self._world.close()
+            self._world = None
+
+
+class _Recorder:
+    """Frames of one episode: camera image (if any) beside a bird's-eye view, written as MP4 (GIF fallback).
+
+    The map is drawn once with `draw_birdseye`; per frame the ego, its trail and the nearby agents are painted
+    on a copy of those pixels, which keeps recording cheap enough for whole routes.
+    """
+
+    SCALE = 3  # camera upscaling in the video
+
+    def __init__(self, obs: Observation) -> None:
+        from yawil.explain import figure_to_array
+        from yawil.sim.town.birdseye import draw_birdseye
+        from yawil.sim.town.layout import load_town_geometry  # type: ignore[attr-defined]
+
+        geometry = load_town_geometry(obs.town)
+        fig = draw_birdseye(geometry, route_xy=obs.route.xy)
+        self._background = figure_to_array(fig)
+        ax = fig.axes[0]
+        self._to_px = ax.transData.transform
+        self._height = self._background.shape[0]
+        import matplotlib.pyplot as plt
+
+        plt.close(fig)
+        self._trail: list[tuple[int, int]] = []
+        self.frames: list[Any] = []
+
+    def _px(self, x: float, y: float) -> tuple[int, int]:
+        px, py = self._to_px((x, y))
+        return int(round(py)), int(round(px))
+
+    def add(self, obs: Observation) -> None:
+        import numpy as np
+
+        bev = self._background.copy()
+        h, w = bev.shape[:2]
+
+        def dot(r: int, c: int, color: tuple[int, int, int], size: int) -> None:
+            r = h - r
+            bev[max(0, r - size) : min(h, r + size + 1), max(0, c - size) : min(w, c + size + 1)] = color
+
+        self._trail.append(self._px(obs.pose.x, obs.pose.y))
+        for r, c in self._trail:
+            dot(r, c, (255, 140, 0), 1)
+        for a in obs.privileged.agents:
+            dot(*self._px(a.x, a.y), (40, 90, 255) if a.kind == "vehicle" else (30, 180, 60), 3)
+        dot(*self._px(obs.pose.x, obs.pose.y), (230, 20, 20), 4)
+        if obs.image is not None:
+            cam = np.repeat(np.repeat(obs.image, self.SCALE, axis=0), self.SCALE, axis=1)
+            canvas = np.zeros((max(h, cam.shape[0]), w + cam.shape[1], 3), dtype=np.uint8)
+            canvas[: cam.shape[0], : cam.shape[1]] = cam
+            canvas[:h, cam.shape[1] :] = bev
+            self.frames.append(canvas)
+        else:
+            self.frames.append(bev)
+
+    def write(self, stem: Path) -> str:
+        from yawil.explain import write_video
+
+        return str(write_video(self.frames, stem.with_suffix(".mp4"), fps=10))
+
+
+# ----- process pool ----------------------------------------------------------------------------------------
+
+_DRIVER: EpisodeDriver | None = None
+
+
+def _init_worker(spec: AgentSpec, camera: bool, record_dir: str | None, threads: int) -> None:
+    global _DRIVER
+    if not spec.is_expert:
+        import torch
+
+        torch.set_num_threads(threads)
+    _DRIVER = EpisodeDriver(spec, camera, Path(record_dir) if record_dir else None)
+
+
+def _run_in_worker(ep: Episode) -> dict[str, Any]:
+    if _DRIVER is None:
+        raise RuntimeError("worker not initialised")
+    return _DRIVER.run(ep)
+
+
+@dataclass
+class RunSummary:
+    total: int
+    skipped: int
+    ran: int
+    successes: int
+    wall_s: float
+    records: list[dict[str, Any]]
+
+
+def run_benchmark(
+    episodes: Sequence[Episode],
+    spec: AgentSpec,
+    out: str | Path,
+    workers: int = 1,
+    camera: bool | None = None,
+    record: bool = False,
+    progress: bool = True,
+    label: str | None = None,
+    world_factory: Callable[[], World] | None = None,
+    on_record: Callable[[Mapping[str, Any]], None] | None = None,
+) -> RunSummary:
+    """Drive every episode not yet in `out`, appending each record as soon as it is done."""
+    spec.validate()
+    if workers < 1:
+        raise ValueError(f"--workers must be >= 1, got {workers}")
+    if world_factory is not None and workers > 1:
+        raise ValueError("a custom world_factory runs in-process only (workers=1)")
+    use_camera = (not spec.is_expert) if camera is None else camera
+    out = Path(out)
+    record_dir = out / "videos" if record else None
+    info = {"agent": spec.identity(), "agent_options": spec.options(), "label": label or out.name}
+    t0 = time.perf_counter()
+    with EpisodeLog(out) as log:
+        check_run_info(out, info)
+        todo = [ep for ep in episodes if ep.key not in log]
+        skipped = len(episodes) - len(todo)
+        done_now: list[dict[str, Any]] = []
+        from tqdm import tqdm
+
+        bar = tqdm(total=len(episodes), initial=skipped, disable=not progress, unit="ep", dynamic_ncols=True)
+        wanted = {ep.key for ep in episodes}
+        ok = sum(bool(r["success"]) for r in log.records if episode_key(r) in wanted)
+
+        def finish(rec: dict[str, Any]) -> None:
+            nonlocal ok
+            log.append(rec)
+            done_now.append(rec)
+            ok += bool(rec["success"])
+            bar.update(1)
+            bar.set_postfix_str(f"success {ok}/{skipped + len(done_now)}")
+            if on_record is not None:
+                on_record(rec)
+
+        try:
+            if workers == 1 or len(todo) <= 1:
+                driver = EpisodeDriver(spec, use_camera, record_dir, world_factory)
+                try:
+                    for ep in todo:
+                        finish(driver.run(ep))
+                finally:
+                    driver.close()
+            else:
+                threads = max(1, (os.cpu_count() or 2) // workers)
+                with ProcessPoolExecutor(
+                    max_workers=workers,
+                    mp_context=get_context("spawn"),
+                    initializer=_init_worker,
+                    initargs=(spec, use_camera, str(record_dir) if record_dir else None, threads),
+                ) as pool:
+                    pending: set[Future[dict[str, Any]]] = set()
+                    queue = list(reversed(todo))
+                    try:
+                        # Keep at most 2 episodes per worker in flight so a kill loses little work.
+                        while queue or pending:
+                            while queue and len(pending) < 2 * workers:
+                                pending.add(pool.submit(_run_in_worker, queue.pop()))
+                            finished, pending = wait(pending, return_when=FIRST_COMPLETED)
+                            for fut in finished:
+                                finish(fut.result())
+                    except BaseException:
+                        for fut in pending:
+                            fut.cancel()
+                        raise
+        finally:
+            bar.close()
+    return RunSummary(
+        total=len(episodes),
+        skipped=skipped,
+        ran=len(done_now),
+        successes=sum(bool(r["success"]) for r in done_now),
+        wall_s=time.perf_counter() - t0,
+        records=done_now,
+    )

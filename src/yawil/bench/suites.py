@@ -1,0 +1,340 @@
+"""Suites, tasks, conditions, the committed route files, and the list of episodes a run is made of.
+
+The protocol (docs/benchmark.md) in data form:
+- tasks: Straight, One Turn, Navigation (Empty) are static (no traffic) and reported as the best of 5 seeds;
+  Nav. (Regular) (30 vehicles, 10 pedestrians) and Nav. (Dense) (50, 30) are dynamic, mean +- std over 3.
+  NoCrash's "Empty" *is* CoRL2017's Navigation: same routes, same episodes, stored once.
+- conditions: `training` = town01 x the 4 training weathers; `new-town-weather` = town02 x the 2 test ones.
+  Route i of a task is driven in weather i mod n of its condition (so each weather gets 25/n routes).
+- `square`: the 32 turning tasks of the paper's Table I on the square map, in ClearNoon.
+Route files live in `yawil/bench/routes/<town>.json`, generated once (`yawil bench routes`) and committed.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from yawil.bench.metrics import timeout_for
+from yawil.sim.types import Pose, Scenario
+from yawil.sim.weather import TEST_WEATHERS, TRAIN_WEATHERS, get_weather
+
+ROUTES_DIR = Path(__file__).with_name("routes")
+ROUTE_FORMAT = "yawil-routes/1"
+ROUTES_PER_TASK = 25
+SQUARE_TASKS = 32
+
+
+@dataclass(frozen=True)
+class Task:
+    name: str
+    title: str  # as the paper's tables name it
+    routes: str  # which route list of the town file it drives
+    vehicles: int
+    pedestrians: int
+    dynamic: bool  # dynamic tasks: mean +- std over seeds; static: best of seeds
+
+    @property
+    def default_seeds(self) -> int:
+        return 3 if self.dynamic else 5
+
+
+@dataclass(frozen=True)
+class Condition:
+    name: str
+    title: str
+    town: str
+    weathers: tuple[str, ...]
+
+    def weather_for(self, route_id: int) -> str:
+        """Route i is driven in weather i mod n (documented assignment)."""
+        return self.weathers[route_id % len(self.weathers)]
+
+
+TASKS: dict[str, Task] = {
+    t.name: t
+    for t in (
+        Task("straight", "Straight", "straight", 0, 0, False),
+        Task("one_turn", "One Turn", "one_turn", 0, 0, False),
+        Task("navigation", "Navigation (Empty)", "navigation", 0, 0, False),
+        Task("regular", "Nav. (Regular)", "navigation", 30, 10, True),
+        Task("dense", "Nav. (Dense)", "navigation", 50, 30, True),
+        Task("square", "Square turning tasks", "square", 0, 0, False),
+    )
+}
+TASK_ALIASES: dict[str, str] = {"empty": "navigation", "nav": "navigation", "one-turn": "one_turn"}
+
+CONDITIONS: dict[str, Condition] = {
+    c.name: c
+    for c in (
+        Condition("training", "Training Conditions", "town01", TRAIN_WEATHERS),
+        Condition("new-town-weather", "New Town02 & Weather", "town02", TEST_WEATHERS),
+        Condition("square", "Square scene", "square", ("ClearNoon",)),
+    )
+}
+
+SUITES: dict[str, tuple[str, ...]] = {
+    "corl2017": ("straight", "one_turn", "navigation"),
+    "nocrash": ("navigation", "regular", "dense"),
+    "all": ("straight", "one_turn", "navigation", "regular", "dense"),
+    "square": ("square",),
+}
+SUITE_CONDITIONS: dict[str, tuple[str, ...]] = {
+    "corl2017": ("training", "new-town-weather"),
+    "nocrash": ("training", "new-town-weather"),
+    "all": ("training", "new-town-weather"),
+    "square": ("square",),
+}
+TABLE_TASKS: tuple[str, ...] = SUITES["all"]  # rows of Table III, in the paper's order
+
+
+def get_task(name: str) -> Task:
+    key = TASK_ALIASES.get(name, name)
+    if key not in TASKS:
+        raise ValueError(f"unknown task {name!r}; choose one of {', '.join(TASKS)} (or alias 'empty')")
+    return TASKS[key]
+
+
+def get_condition(name: str) -> Condition:
+    if name not in CONDITIONS:
+        raise ValueError(f"unknown condition {name!r}; choose one of {', '.join(CONDITIONS)}")
+    return CONDITIONS[name]
+
+
+def get_suite(name: str) -> tuple[str, ...]:
+    if name not in SUITES:
+        raise ValueError(f"unknown suite {name!r}; choose one of {', '.join(SUITES)}")
+    return SUITES[name]
+
+
+# ----- route files -------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class RouteSpec:
+    id: int
+    start: Pose
+    goal: Pose
+    length_m: float
+    turns: tuple[str, ...]  # junction manoeuvres in order: LEFT / RIGHT / STRAIGHT
+    kind: str = ""  # square tasks: corner / t_junction / crossing; empty otherwise
+
+    def to_json(self) -> dict[str, Any]:
+        d: dict[str, Any] = {
+            "id": self.id,
+            "start": {"x": round(self.start.x, 3), "y": round(self.start.y, 3), "yaw": round(self.start.yaw, 5)},
+            "goal": {"x": round(self.goal.x, 3), "y": round(self.goal.y, 3), "yaw": round(self.goal.yaw, 5)},
+            "length_m": round(self.length_m, 2),
+            "turns": list(self.turns),
+        }
+        if self.kind:
+            d["kind"] = self.kind
+        return d
+
+
+# Minimum route lengths in metres per (town, route list). Navigation's are the paper's; the others are ours.
+MIN_LENGTH: dict[str, dict[str, float]] = {
+    "town01": {"straight": 80.0, "one_turn": 80.0, "navigation": 1000.0},
+    "town02": {"straight": 60.0, "one_turn": 60.0, "navigation": 300.0},
+}
+STRAIGHT_MAX_HEADING_DEG = 30.0
+TURN_NAMES = ("LEFT", "RIGHT", "STRAIGHT")
+
+
+def _pose(obj: Any, where: str) -> Pose:
+    if not isinstance(obj, dict) or set(obj) != {"x", "y", "yaw"}:
+        raise ValueError(f"{where}: expected an object with x, y, yaw, got {obj!r}")
+    vals = []
+    for k in ("x", "y", "yaw"):
+        v = obj[k]
+        if not isinstance(v, (int, float)) or isinstance(v, bool) or not math.isfinite(float(v)):
+            raise ValueError(f"{where}.{k}: expected a finite number, got {v!r}")
+        vals.append(float(v))
+    return Pose(*vals)
+
+
+def parse_route(obj: Any, where: str) -> RouteSpec:
+    """One route entry of a route file, checked field by field."""
+    if not isinstance(obj, dict):
+        raise ValueError(f"{where}: expected an object, got {type(obj).__name__}")
+    for k in ("id", "start", "goal", "length_m", "turns"):
+        if k not in obj:
+            raise ValueError(f"{where}: missing field {k!r}")
+    rid = obj["id"]
+    if not isinstance(rid, int) or isinstance(rid, bool) or rid < 0:
+        raise ValueError(f"{where}.id: expected an integer >= 0, got {rid!r}")
+    length = obj["length_m"]
+    if not isinstance(length, (int, float)) or isinstance(length, bool) or not (math.isfinite(length) and length > 0):
+        raise ValueError(f"{where}.length_m: expected a positive number of metres, got {length!r}")
+    turns = obj["turns"]
+    if not isinstance(turns, list) or any(t not in TURN_NAMES for t in turns):
+        raise ValueError(f"{where}.turns: expected a list of {'/'.join(TURN_NAMES)}, got {turns!r}")
+    kind = obj.get("kind", "")
+    if not isinstance(kind, str):
+        raise ValueError(f"{where}.kind: expected a string, got {kind!r}")
+    return RouteSpec(rid, _pose(obj["start"], f"{where}.start"), _pose(obj["goal"], f"{where}.goal"), float(length), tuple(turns), kind)
+
+
+def check_task_routes(town: str, name: str, routes: Sequence[RouteSpec], where: str) -> None:
+    """The protocol's rules on a route list: count, ids in order, lengths, turn structure."""
+    expected = SQUARE_TASKS if name == "square" else ROUTES_PER_TASK
+    if len(routes) != expected:
+        raise ValueError(f"{where}: {len(routes)} routes, the protocol needs {expected}")
+    for i, r in enumerate(routes):
+        if r.id != i:
+            raise ValueError(f"{where}[{i}]: id {r.id}, expected {i} (ids are positions)")
+        minimum = MIN_LENGTH.get(town, {}).get(name, 0.0)
+        if r.length_m < minimum:
+            raise ValueError(f"{where}[{i}]: length {r.length_m:.1f} m < the minimum {minimum:.0f} m for {name} in {town}")
+        n_lr = sum(t in ("LEFT", "RIGHT") for t in r.turns)
+        if name == "straight" and n_lr:
+            raise ValueError(f"{where}[{i}]: a straight route has turns {r.turns}")
+        if name == "one_turn" and n_lr != 1:
+            raise ValueError(f"{where}[{i}]: a one-turn route needs exactly one LEFT/RIGHT, has {r.turns}")
+    starts = {(r.start, r.goal) for r in routes}
+    if len(starts) != len(routes) and name != "square":
+        raise ValueError(f"{where}: routes repeat (same start and goal)")
+
+
+def route_file(town: str, folder: Path | None = None) -> Path:
+    return (folder or ROUTES_DIR) / f"{town}.json"
+
+
+def load_routes(town: str, folder: Path | None = None) -> dict[str, list[RouteSpec]]:
+    """The route lists of a town's committed file, validated against the protocol (not the planner)."""
+    path = route_file(town, folder)
+    if not path.exists():
+        raise ValueError(f"no route file for town {town!r} at {path}; generate it with `yawil bench routes --town {town}`")
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except ValueError as err:
+        raise ValueError(f"{path}: not valid JSON ({err})") from None
+    if not isinstance(doc, dict) or doc.get("format") != ROUTE_FORMAT:
+        raise ValueError(f"{path}: field 'format' must be {ROUTE_FORMAT!r}")
+    if doc.get("town") != town:
+        raise ValueError(f"{path}: field 'town' is {doc.get('town')!r}, expected {town!r}")
+    lists = doc.get("routes")
+    if not isinstance(lists, dict) or not lists:
+        raise ValueError(f"{path}: field 'routes' must map route-list names to lists")
+    out: dict[str, list[RouteSpec]] = {}
+    for name, items in lists.items():
+        if not isinstance(items, list):
+            raise ValueError(f"{path}: routes.{name} must be a list")
+        specs = [parse_route(o, f"{path}: routes.{name}[{i}]") for i, o in enumerate(items)]
+        check_task_routes(town, name, specs, f"{path}: routes.{name}")
+        out[name] = specs
+    return out
+
+
+# ----- episodes ------------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Episode:
+    """One episode of a run: what to drive, where, in which weather, with which seed."""
+
+    suite: str
+    task: str
+    condition: str
+    route: RouteSpec
+    seed: int  # the run's seed index (0..n-1)
+    town: str
+    weather: str
+    vehicles: int
+    pedestrians: int
+
+    @property
+    def route_id(self) -> int:
+        return self.route.id
+
+    @property
+    def key(self) -> str:
+        return f"{self.task}/{self.condition}/{self.route.id}/{self.seed}"
+
+    @property
+    def world_seed(self) -> int:
+        """Seed of the world and agent: 1000 * seed + route id (stable, readable, distinct per episode)."""
+        return 1000 * self.seed + self.route.id
+
+    @property
+    def timeout_s(self) -> float:
+        return timeout_for(self.route.length_m)
+
+    def scenario(self, camera: bool) -> Scenario:
+        return Scenario(
+            town=self.town,
+            start=self.route.start,
+            goal=self.route.goal,
+            weather=self.weather,
+            vehicles=self.vehicles,
+            pedestrians=self.pedestrians,
+            timeout_s=self.timeout_s,
+            camera=camera,
+        )
+
+
+def parse_range(spec: str | None, n: int) -> list[int]:
+    """Route ids selected by 'a:b' (Python slice), 'a,b,c', or None (all)."""
+    if spec is None or spec == "":
+        return list(range(n))
+    try:
+        if ":" in spec:
+            parts = [int(p) if p.strip() else None for p in spec.split(":")]
+            if len(parts) > 3:
+                raise ValueError
+            return list(range(n))[slice(*parts)]
+        ids = [int(p) for p in spec.split(",")]
+    except ValueError:
+        raise ValueError(f"--routes {spec!r}: expected a slice like 0:5 or a list like 1,4,7") from None
+    bad = [i for i in ids if not 0 <= i < n]
+    if bad:
+        raise ValueError(f"--routes {spec!r}: ids {bad} outside 0..{n - 1}")
+    return ids
+
+
+def episodes(
+    suite: str,
+    conditions: Sequence[str] | None = None,
+    tasks: Sequence[str] | None = None,
+    routes: str | None = None,
+    seeds: int | None = None,
+    routes_folder: Path | None = None,
+) -> list[Episode]:
+    """Every episode of a run, in a fixed order (condition, task, seed, route); no key repeats.
+
+    `seeds` None gives the protocol's count per task (5 static, 3 dynamic); a number overrides it for all.
+    """
+    suite_tasks = get_suite(suite)
+    conds = list(conditions) if conditions else list(SUITE_CONDITIONS[suite])
+    names = [get_task(t).name for t in tasks] if tasks else list(suite_tasks)
+    for t in names:
+        if t not in suite_tasks:
+            raise ValueError(f"task {t!r} is not in suite {suite!r} ({', '.join(suite_tasks)})")
+    if seeds is not None and seeds < 1:
+        raise ValueError(f"--seeds must be >= 1, got {seeds}")
+    out: list[Episode] = []
+    seen: set[str] = set()
+    for cname in conds:
+        cond = get_condition(cname)
+        if cname not in SUITE_CONDITIONS[suite]:
+            raise ValueError(f"condition {cname!r} is not one of suite {suite!r} ({', '.join(SUITE_CONDITIONS[suite])})")
+        for w in cond.weathers:
+            get_weather(w)
+        lists = load_routes(cond.town, routes_folder)
+        for tname in names:
+            task = TASKS[tname]
+            if task.routes not in lists:
+                raise ValueError(f"route file of {cond.town} has no {task.routes!r} list")
+            specs = lists[task.routes]
+            ids = parse_range(routes, len(specs))
+            for seed in range(seeds if seeds is not None else task.default_seeds):
+                for rid in ids:
+                    ep = Episode(suite, tname, cname, specs[rid], seed, cond.town, cond.weather_for(rid), task.vehicles, task.pedestrians)
+                    if ep.key not in seen:
+                        seen.add(ep.key)
+                        out.append(ep)
+    return out

@@ -1,0 +1,82 @@
+"""The results file: append-only JSON lines, resume with a truncated last line, run identity."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from yawil.bench.records import (
+    EPISODES_FILE,
+    EpisodeLog,
+    check_run_info,
+    episode_key,
+    iter_results,
+    read_records,
+)
+
+
+def _rec(i: int) -> dict:
+    return {"task": "straight", "condition": "training", "route_id": i, "seed": 0, "success": True, "km_driven": 0.1}
+
+
+def test_append_and_resume(tmp_path: Path) -> None:
+    with EpisodeLog(tmp_path) as log:
+        for i in range(3):
+            log.append(_rec(i))
+    log2 = EpisodeLog(tmp_path)
+    assert len(log2.records) == 3 and "straight/training/1/0" in log2
+    with pytest.raises(ValueError, match="already"):
+        log2.append(_rec(1))
+    log2.close()
+
+
+def test_partial_last_line_is_ignored_and_cut(tmp_path: Path) -> None:
+    with EpisodeLog(tmp_path) as log:
+        log.append(_rec(0))
+        log.append(_rec(1))
+    path = tmp_path / EPISODES_FILE
+    full = path.read_bytes()
+    path.write_bytes(full + json.dumps(_rec(2)).encode()[:25])  # killed mid-write
+    assert [r["route_id"] for r in read_records(path)] == [0, 1]
+    with EpisodeLog(tmp_path) as log:
+        assert path.read_bytes() == full  # the partial line was cut
+        log.append(_rec(2))
+    lines = path.read_text().splitlines()
+    assert [json.loads(x)["route_id"] for x in lines] == [0, 1, 2]
+
+
+def test_complete_json_without_newline_is_partial(tmp_path: Path) -> None:
+    path = tmp_path / EPISODES_FILE
+    path.write_text(json.dumps(_rec(0)) + "\n" + json.dumps(_rec(1)))
+    assert len(read_records(path)) == 1
+
+
+def test_corrupt_middle_line_names_file_and_line(tmp_path: Path) -> None:
+    path = tmp_path / EPISODES_FILE
+    path.write_text(json.dumps(_rec(0)) + "\n{oops\n" + json.dumps(_rec(1)) + "\n")
+    with pytest.raises(ValueError, match=r"episodes.jsonl: line 2"):
+        read_records(path)
+
+
+def test_duplicate_keys_in_file_are_an_error(tmp_path: Path) -> None:
+    path = tmp_path / EPISODES_FILE
+    path.write_text(json.dumps(_rec(0)) + "\n" + json.dumps(_rec(0)) + "\n")
+    with pytest.raises(ValueError, match="repeats"):
+        EpisodeLog(tmp_path)
+
+
+def test_key_and_run_identity(tmp_path: Path) -> None:
+    assert episode_key(_rec(4)) == "straight/training/4/0"
+    with pytest.raises(ValueError, match="route_id"):
+        episode_key({"task": "x", "condition": "y", "seed": 0})
+    check_run_info(tmp_path, {"agent": "expert", "agent_options": {}})
+    check_run_info(tmp_path, {"agent": "expert", "agent_options": {}})
+    with pytest.raises(ValueError, match="another --out"):
+        check_run_info(tmp_path, {"agent": "/x/best.pt", "agent_options": {}})
+
+
+def test_iter_results_needs_a_results_folder(tmp_path: Path) -> None:
+    with pytest.raises(ValueError, match="episodes.jsonl"):
+        list(iter_results(tmp_path))

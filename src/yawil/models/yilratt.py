@@ -1,0 +1,62 @@
+"""YILRatt, the paper's network: ResNet34 + linear attention (perception), measurements, action, speed.
+
+    image -> ResNet34 -> layer1, layer2, layer3 --attention(g)--> 3 x 512 -> P(o)   (g = pooled layer4)
+    [speed, guidance] -> FC 128, 128 -> m
+    [P(o), m] -> FC 512 -> FC 256, 256 -> 3 actions (tanh steer, sigmoid throttle and brake)
+    P(o) -> FC 256, 256 -> 1 speed (perception only, as the paper's loss S(P(o)))
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import torch
+from torch import Tensor, nn
+
+from yawil.models.base import DrivingModel, ModelOutput, resolve_guidance, squash_actions
+from yawil.models.layers import LinearAttention, fc_relu, head
+from yawil.models.registry import register
+from yawil.models.resnet import STAGE_CHANNELS, build_resnet34, load_imagenet_weights, resnet_stages
+
+
+@register("yilratt")
+class YILRatt(DrivingModel):
+    """Yaw-guided imitation learning with ResNet34 and attention (the paper's Figure 2)."""
+
+    def __init__(self, guidance: str = "yaw", guidance_dim: int | None = None, dropout: float = 0.5) -> None:
+        super().__init__(guidance=guidance, guidance_dim=resolve_guidance(guidance, guidance_dim), uses_command=False)
+        global_dim = STAGE_CHANNELS[-1]
+        self.backbone = build_resnet34()
+        self.attention = nn.ModuleList(LinearAttention(c, global_dim) for c in STAGE_CHANNELS[:3])
+        feat_dim = global_dim * len(self.attention)
+        self.measurement = fc_relu(1 + self.guidance_dim, (128, 128))
+        self.join = fc_relu(feat_dim + 128, (512,))
+        self.action = head(512, (256, 256), 3, dropout)
+        self.speed_head = head(feat_dim, (256, 256), 1, dropout)
+
+    def perceive(self, image: Tensor) -> tuple[Tensor, list[Tensor]]:
+        """Concatenated attended vectors P(o) [B, 1536] and the three attention maps."""
+        l1, l2, l3, l4 = resnet_stages(self.backbone, self.normalise(image))
+        g = l4.mean(dim=(2, 3))
+        vectors, maps = [], []
+        for block, local in zip(self.attention, (l1, l2, l3), strict=True):
+            v, a = block(local, g)
+            vectors.append(v)
+            maps.append(a)
+        return torch.cat(vectors, dim=1), maps
+
+    def forward(
+        self, image: Tensor, speed: Tensor, guidance: Tensor | None = None, command: Tensor | None = None
+    ) -> ModelOutput:
+        guide, _ = self.check_inputs(image, speed, guidance, command)
+        assert guide is not None
+        feat, maps = self.perceive(image)
+        m = self.measurement(torch.cat([speed, guide], dim=1).to(feat.dtype))
+        raw = self.action(self.join(torch.cat([feat, m], dim=1)))
+        return ModelOutput(squash_actions(raw), self.speed_head(feat), maps, None)
+
+    def stage_features(self, image: Tensor) -> list[Tensor]:
+        return resnet_stages(self.backbone, self.normalise(image))
+
+    def load_pretrained(self, path: str | Path) -> None:
+        load_imagenet_weights(self.backbone, path)

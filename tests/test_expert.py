@@ -1,0 +1,273 @@
+"""The expert on synthetic observations (no simulator) and, at the end, in the embedded world."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+
+from yawil.expert import Expert, ExpertConfig, expert_info
+from yawil.sim.types import (
+    DT,
+    AgentState,
+    Control,
+    LightState,
+    Observation,
+    Pose,
+    Privileged,
+    RoadOption,
+    Route,
+)
+
+# ---------------------------------------------------------------------------------------------- helpers
+
+
+def polyline(*pieces: np.ndarray) -> np.ndarray:
+    pts = np.concatenate(pieces)
+    keep = np.concatenate([[True], np.linalg.norm(np.diff(pts, axis=0), axis=1) > 1e-6])
+    return np.asarray(pts[keep])
+
+
+def straight(x0: float, x1: float, y: float = 0.0) -> np.ndarray:
+    n = int(round(abs(x1 - x0))) + 1
+    return np.stack([np.linspace(x0, x1, n), np.full(n, y)], axis=1)
+
+
+def make_route(xy: np.ndarray, turn: tuple[int, int] | None = None, option: RoadOption = RoadOption.LEFT,
+               lights: tuple[tuple[int, int], ...] = ()) -> Route:
+    d = np.diff(xy, axis=0)
+    yaw = np.arctan2(d[:, 1], d[:, 0])
+    yaw = np.concatenate([yaw, yaw[-1:]])
+    options = np.full(len(xy), int(RoadOption.LANEFOLLOW), dtype=np.int8)
+    if turn is not None:
+        options[turn[0] : turn[1]] = int(option)
+    return Route(xy=xy, options=options, lane_yaw=yaw, lights=lights)
+
+
+def turn_route(sign: float = 1.0) -> Route:
+    """30 m east, a quarter circle of radius 10 m to the left (sign=1) or right (-1), then 40 m on."""
+    a = np.linspace(0.0, math.pi / 2, 16)
+    arc = np.stack([30.0 + 10.0 * np.sin(a), sign * (10.0 - 10.0 * np.cos(a))], axis=1)
+    north = np.stack([np.full(40, 40.0), sign * np.linspace(11.0, 50.0, 40)], axis=1)
+    xy = polyline(straight(0.0, 30.0), arc, north)
+    return make_route(xy, turn=(25, 48), option=RoadOption.LEFT if sign > 0 else RoadOption.RIGHT)
+
+
+def observe(route: Route, x: float, y: float, yaw: float, speed: float, lights: tuple[LightState, ...] = (),
+            agents: tuple[AgentState, ...] = (), frame: int = 0) -> Observation:
+    idx = int(np.argmin(np.linalg.norm(route.xy - np.array([x, y]), axis=1)))
+    return Observation(
+        image=None, speed=speed, pose=Pose(x, y, yaw), route=route, route_index=idx,
+        command=RoadOption(int(route.options[idx])), events=(), time=frame * DT, frame=frame, done=False,
+        distance_driven=0.0, town="synthetic", bounds=(-10.0, -60.0, 100.0, 60.0), weather="ClearNoon",
+        privileged=Privileged(lights=lights, agents=agents, ego_lane_yaw=yaw),
+    )
+
+
+def pedestrian(x: float, y: float, yaw: float = 0.0, speed: float = 0.0, ident: int = 7) -> AgentState:
+    return AgentState(id=ident, kind="pedestrian", x=x, y=y, yaw=yaw, speed=speed, length=0.5, width=0.5)
+
+
+def vehicle(x: float, y: float, yaw: float = 0.0, speed: float = 0.0, ident: int = 9) -> AgentState:
+    return AgentState(id=ident, kind="vehicle", x=x, y=y, yaw=yaw, speed=speed, length=4.5, width=1.9)
+
+
+class Bicycle:
+    """A kinematic bicycle with the embedded backend's nominal limits, to close the loop without the world.
+
+    The state is the rear axle (where the bicycle model is exact); x, y report the centre, as a pose does.
+    """
+
+    WHEELBASE = 2.9
+
+    def __init__(self, x: float, y: float, yaw: float, speed: float = 0.0) -> None:
+        self.rx, self.ry = x - 0.5 * self.WHEELBASE * math.cos(yaw), y - 0.5 * self.WHEELBASE * math.sin(yaw)
+        self.yaw, self.speed = yaw, speed
+
+    @property
+    def x(self) -> float:
+        return self.rx + 0.5 * self.WHEELBASE * math.cos(self.yaw)
+
+    @property
+    def y(self) -> float:
+        return self.ry + 0.5 * self.WHEELBASE * math.sin(self.yaw)
+
+    def step(self, c: Control) -> None:
+        c.validate()
+        delta = -c.steer * math.radians(35.0)
+        accel = 3.5 * c.throttle - 8.0 * c.brake - 0.05 * self.speed
+        self.speed = max(self.speed + accel * DT, 0.0)
+        self.rx += self.speed * math.cos(self.yaw) * DT
+        self.ry += self.speed * math.sin(self.yaw) * DT
+        self.yaw += self.speed / self.WHEELBASE * math.tan(delta) * DT
+
+
+# ------------------------------------------------------------------------------------------ open loop
+
+
+def test_straight_route_goes_straight_and_accelerates() -> None:
+    route = make_route(straight(0.0, 100.0))
+    c = Expert().act(observe(route, 10.0, 0.0, 0.0, 2.0))
+    assert abs(c.steer) < 1e-6
+    assert c.throttle > 0.1 and c.brake == 0.0
+
+
+@pytest.mark.parametrize("sign", [1.0, -1.0])
+def test_steers_into_the_turn(sign: float) -> None:
+    route = turn_route(sign)
+    c = Expert().act(observe(route, 30.0, 0.0, 0.0, 4.0))
+    # CARLA convention: steer > 0 turns right; a left turn (yaw increasing) needs a negative steer
+    assert c.steer * sign < -0.1
+
+
+def test_steers_back_towards_the_route() -> None:
+    route = make_route(straight(0.0, 100.0))
+    c = Expert().act(observe(route, 10.0, -1.0, 0.0, 4.0))  # 1 m right of the route
+    assert c.steer < -0.05
+
+
+def test_slows_for_a_sharp_turn_ahead() -> None:
+    e = Expert()
+    e.act(observe(turn_route(), 30.0, 0.0, 0.0, 5.5))
+    assert e.state.reason == "curve"
+    assert e.state.target_speed < 5.0
+
+
+def _light_route() -> Route:
+    return make_route(straight(0.0, 100.0), turn=(30, 45), option=RoadOption.STRAIGHT, lights=((30, 3),))
+
+
+def test_brakes_for_a_red_light_not_for_a_green_one() -> None:
+    route = _light_route()
+    red = (LightState(3, "red", 30.0, 0.0, 0.0),)
+    e = Expert()
+    c = e.act(observe(route, 22.0, 0.0, 0.0, 5.5, lights=red))
+    assert c.brake > 0.0 and c.throttle == 0.0
+    assert e.state.reason == "red_light"
+    green = (LightState(3, "green", 30.0, 0.0, 0.0),)
+    e2 = Expert()
+    c2 = e2.act(observe(route, 22.0, 0.0, 0.0, 4.0, lights=green))
+    assert c2.throttle > 0.0 and c2.brake == 0.0
+    assert e2.state.reason == "cruise"
+
+
+def test_yellow_light_stops_only_when_it_comfortably_can() -> None:
+    route = _light_route()
+    yellow = (LightState(3, "yellow", 30.0, 0.0, 0.0),)
+    far = Expert()
+    far.act(observe(route, 5.0, 0.0, 0.0, 5.5, lights=yellow))
+    assert far.state.light_decisions == {3: "stop"}
+    near = Expert()  # front bumper 0.8 m before the line at 5.5 m/s: cannot stop comfortably, goes on
+    c = near.act(observe(route, 26.9, 0.0, 0.0, 5.5, lights=yellow))
+    assert near.state.light_decisions == {3: "go"}
+    assert near.state.reason != "yellow_light" and c.brake == 0.0
+
+
+def test_red_light_behind_the_ego_is_ignored() -> None:
+    route = _light_route()
+    red = (LightState(3, "red", 30.0, 0.0, 0.0),)
+    e = Expert()
+    c = e.act(observe(route, 40.0, 0.0, 0.0, 4.0, lights=red))
+    assert c.throttle > 0.0 and e.state.reason == "cruise"
+
+
+def test_brakes_for_a_pedestrian_in_the_corridor_not_on_the_sidewalk() -> None:
+    route = make_route(straight(0.0, 100.0))
+    e = Expert()
+    c = e.act(observe(route, 10.0, 0.0, 0.0, 5.0, agents=(pedestrian(18.0, 0.5),)))
+    assert c.brake > 0.0 and e.state.reason == "pedestrian"
+    far = Expert()
+    c2 = far.act(observe(route, 10.0, 0.0, 0.0, 4.0, agents=(pedestrian(18.0, -6.0), pedestrian(30.0, 3.2, math.pi / 2, 1.2))))
+    assert c2.throttle > 0.0 and c2.brake == 0.0 and far.state.reason == "cruise"
+
+
+def test_pedestrian_about_to_enter_the_corridor_counts() -> None:
+    route = make_route(straight(0.0, 100.0))
+    walking_in = pedestrian(20.0, -4.0, math.pi / 2, 1.4)
+    e = Expert()
+    c = e.act(observe(route, 10.0, 0.0, 0.0, 5.0, agents=(walking_in,)))
+    assert e.state.reason == "pedestrian" and c.brake > 0.0
+    walking_away = pedestrian(20.0, -4.0, -math.pi / 2, 1.4)
+    e2 = Expert()
+    e2.act(observe(route, 10.0, 0.0, 0.0, 5.0, agents=(walking_away,)))
+    assert e2.state.reason == "cruise"
+
+
+def test_follows_a_lead_vehicle_and_ignores_oncoming_traffic() -> None:
+    route = make_route(straight(0.0, 100.0))
+    oncoming = vehicle(30.0, 3.5, math.pi, 5.0, ident=1)
+    behind = vehicle(2.0, 0.0, 0.0, 6.0, ident=2)
+    e = Expert()
+    c = e.act(observe(route, 10.0, 0.0, 0.0, 4.0, agents=(oncoming, behind)))
+    assert e.state.reason == "cruise" and c.throttle > 0.0
+    stopped = vehicle(22.0, 0.2, 0.0, 0.0, ident=3)
+    e2 = Expert()
+    c2 = e2.act(observe(route, 10.0, 0.0, 0.0, 5.0, agents=(stopped,)))
+    assert e2.state.reason == "vehicle" and c2.brake > 0.0
+    assert expert_info(e2)["hazard"]["agent_id"] == 3
+
+
+def test_yields_to_crossing_traffic_in_a_junction() -> None:
+    route = make_route(straight(0.0, 100.0), turn=(30, 42), option=RoadOption.STRAIGHT, lights=((30, 3),))
+    green = (LightState(3, "green", 30.0, 0.0, 0.0),)
+    crossing = vehicle(36.0, -14.0, math.pi / 2, 6.0)  # from the right, reaches the path in ~2 s
+    e = Expert()
+    e.act(observe(route, 25.0, 0.0, 0.0, 5.0, lights=green, agents=(crossing,)))
+    assert e.state.reason == "junction"
+    gone = vehicle(36.0, 14.0, math.pi / 2, 6.0)  # already past the path, driving away
+    e2 = Expert()
+    e2.act(observe(route, 25.0, 0.0, 0.0, 5.0, lights=green, agents=(gone,)))
+    assert e2.state.reason == "cruise"
+
+
+def test_deterministic_and_reset() -> None:
+    route = turn_route()
+    obs = [observe(route, 20.0 + i, 0.0, 0.0, 3.0 + 0.1 * i, agents=(pedestrian(40.0, 8.0, -math.pi / 2, 1.0),))
+           for i in range(10)]
+    e = Expert()
+    a = [e.act(o) for o in obs]
+    e.reset()
+    b = [e.act(o) for o in obs]
+    assert a == b
+
+
+def test_bad_config_is_an_error() -> None:
+    with pytest.raises(ValueError, match="cruise_speed"):
+        ExpertConfig(cruise_speed=0.0)
+    with pytest.raises(ValueError, match="lookahead_max"):
+        ExpertConfig(lookahead_min=5.0, lookahead_max=4.0)
+    with pytest.raises(ValueError, match="kp"):
+        ExpertConfig(kp=float("nan"))
+
+
+# ---------------------------------------------------------------------------------------- closed loop
+
+
+def _drive(route: Route, steps: int, lights: tuple[LightState, ...] = ()) -> tuple[Bicycle, float]:
+    car = Bicycle(0.0, 0.0, 0.0)
+    e = Expert()
+    worst = 0.0
+    for i in range(steps):
+        o = observe(route, car.x, car.y, car.yaw, car.speed, lights=lights, frame=i)
+        car.step(e.act(o))
+        worst = max(worst, abs(e.state.lateral_error))
+    return car, worst
+
+
+@pytest.mark.parametrize("sign", [1.0, -1.0])
+def test_closed_loop_turn_reaches_the_goal(sign: float) -> None:
+    route = turn_route(sign)
+    car, worst = _drive(route, 400)
+    assert math.hypot(car.x - route.xy[-1, 0], car.y - route.xy[-1, 1]) < 2.0
+    assert car.speed < 0.1  # stopped at the goal
+    assert worst < 0.6  # metres off the route at most, in the turn
+
+
+def test_closed_loop_stops_before_the_red_stop_line() -> None:
+    route = _light_route()
+    red = (LightState(3, "red", 30.0, 0.0, 0.0),)
+    car, _ = _drive(route, 200, lights=red)
+    front = car.x + 0.5 * ExpertConfig().length
+    assert car.speed < 0.05
+    assert 26.0 < front <= 30.0  # waiting behind the line, not far from it

@@ -231,6 +231,17 @@ def test_bf16_channels_last_forward() -> None:
     assert ref.actions.shape == (2, 3)
 
 
+@pytest.mark.parametrize("name", ["yilratt", "cil"])
+def test_float64_inputs_are_accepted(name: str) -> None:
+    model = small(name).eval()
+    x = inputs(model, 2, size_of(name))
+    x64 = {k: v.double() if v is not None and v.is_floating_point() else v for k, v in x.items()}
+    with torch.no_grad():
+        ref, out = model(**x), model(**x64)
+    assert out.actions.dtype == torch.float32
+    torch.testing.assert_close(out.actions, ref.actions)
+
+
 def test_bad_inputs_raise_naming_the_argument() -> None:
     yil = small("yilratt").eval()
     cil = small("cil").eval()

@@ -69,10 +69,10 @@ class DrivingModel(nn.Module):
         self.register_buffer("std", torch.tensor(IMAGENET_STD).view(1, 3, 1, 1), persistent=False)
 
     def normalise(self, image: Tensor) -> Tensor:
-        """Images arrive in [0, 1]; the backbones expect ImageNet statistics."""
+        """Images arrive in [0, 1]; the backbones expect ImageNet statistics (and the model's dtype)."""
         mean: Tensor = self.mean  # type: ignore[assignment]
         std: Tensor = self.std  # type: ignore[assignment]
-        return (image - mean.to(image.dtype)) / std.to(image.dtype)
+        return ((image - mean) / std).to(mean.dtype)
 
     def check_inputs(
         self, image: Tensor, speed: Tensor, guidance: Tensor | None, command: Tensor | None

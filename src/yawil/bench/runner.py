@@ -84,6 +84,7 @@ class EpisodeDriver:
     camera: bool
     record_dir: Path | None = None
     world_factory: Callable[[], World] | None = None
+    agent_factory: Callable[[int], DrivingAgent] | None = None
     _world: World | None = None
     _agent: DrivingAgent | None = None
     _reset_takes_seed: bool = False
@@ -105,7 +106,7 @@ class EpisodeDriver:
     def agent(self, seed: int) -> DrivingAgent:
         """Reuse the agent; rebuild it per episode only when its noise needs a per-episode seed it cannot take."""
         if self._agent is None or (self._noisy and not self._reset_takes_seed):
-            self._agent = self.spec.build(seed)
+            self._agent = self.agent_factory(seed) if self.agent_factory else self.spec.build(seed)
             self._reset_takes_seed = "seed" in inspect.signature(self._agent.reset).parameters
         if self._reset_takes_seed:
             self._agent.reset(seed=seed)  # type: ignore[call-arg]
@@ -264,14 +265,20 @@ def run_benchmark(
     progress: bool = True,
     label: str | None = None,
     world_factory: Callable[[], World] | None = None,
+    agent_factory: Callable[[int], DrivingAgent] | None = None,
     on_record: Callable[[Mapping[str, Any]], None] | None = None,
 ) -> RunSummary:
-    """Drive every episode not yet in `out`, appending each record as soon as it is done."""
-    spec.validate()
+    """Drive every episode not yet in `out`, appending each record as soon as it is done.
+
+    `world_factory` and `agent_factory` (seed -> agent) replace the embedded world and the agent that
+    `spec` names (any object with reset() and act(obs)); they run in-process only.
+    """
+    if agent_factory is None:
+        spec.validate()
     if workers < 1:
         raise ValueError(f"--workers must be >= 1, got {workers}")
-    if world_factory is not None and workers > 1:
-        raise ValueError("a custom world_factory runs in-process only (workers=1)")
+    if (world_factory is not None or agent_factory is not None) and workers > 1:
+        raise ValueError("a custom world_factory or agent_factory runs in-process only (workers=1)")
     use_camera = (not spec.is_expert) if camera is None else camera
     out = Path(out)
     record_dir = out / "videos" if record else None
@@ -300,7 +307,7 @@ def run_benchmark(
 
         try:
             if workers == 1 or len(todo) <= 1:
-                driver = EpisodeDriver(spec, use_camera, record_dir, world_factory)
+                driver = EpisodeDriver(spec, use_camera, record_dir, world_factory, agent_factory)
                 try:
                     for ep in todo:
                         finish(driver.run(ep))

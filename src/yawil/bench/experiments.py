@@ -1,0 +1,253 @@
+"""The square experiments of the paper: Table I (road-option methods x datasets) and Table II (noise).
+
+`square_experiment(out, profile)` runs every stage and skips a stage whose output exists, so it resumes:
+    collect (expert on the square, no traffic) -> subsets (1) road-option turns, (2) lane-follow turns,
+    (3) both -> train 4 methods x 3 datasets = 12 models -> drive the 32 turning tasks -> Table I.
+`noise_experiment(out, profile)` drives again the models that passed all 32 tasks: guided models with yaw
+noise sigma 10/20/30 deg, CIL with wrong commands (5 frames) at 3/5/10 %, 5 seeds, mean +- std -> Table II.
+
+Profiles (`PROFILES`): `paper` follows the paper (full training settings); `quick` is a minutes-scale smoke
+run of the same pipeline on tiny budgets, whose numbers mean nothing beyond "the loop works".
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+from yawil.bench.metrics import mean_std
+from yawil.bench.records import iter_results, write_json_atomic
+
+METHODS: tuple[tuple[str, str], ...] = (
+    ("xy-guided", "XY-guided"),
+    ("yaw-guided", "Yaw-guided"),
+    ("cil", "CIL"),
+    ("simyaw-guided", "Sim-yaw IL"),
+)
+DATASETS: tuple[tuple[str, str, str], ...] = (
+    # (folder, `yawil data subset --only` value, table row)
+    ("subset1", "road-option-turns", "Subset (1): road-option turns"),
+    ("subset2", "lane-follow-turns", "Subset (2): lane-follow turns"),
+    ("full", "all", "Full dataset"),
+)
+YAW_SIGMAS = (10.0, 20.0, 30.0)
+COMMAND_PS = (0.03, 0.05, 0.10)
+NOISE_SEEDS = 5
+GUIDED_YAW = ("yaw-guided", "simyaw-guided")  # yaw noise applies to yaw guidance (not to XY coordinates)
+
+
+@dataclass(frozen=True)
+class Profile:
+    name: str
+    frames: int  # expert frames collected on the square (full dataset)
+    collect_workers: int
+    epochs: int
+    batch_size: int
+    max_steps: int | None  # per model
+    max_minutes: float | None  # per model
+    routes: str | None  # which of the 32 tasks are driven (None: all)
+    noise_seeds: int
+    drive_workers: int
+
+
+PROFILES: dict[str, Profile] = {
+    "quick": Profile("quick", frames=1500, collect_workers=2, epochs=2, batch_size=64, max_steps=40,
+                     max_minutes=2.0, routes="0:32:4", noise_seeds=2, drive_workers=2),
+    "paper": Profile("paper", frames=60000, collect_workers=2, epochs=100, batch_size=512, max_steps=None,
+                     max_minutes=None, routes=None, noise_seeds=NOISE_SEEDS, drive_workers=2),
+}
+
+
+def get_profile(name: str) -> Profile:
+    if name not in PROFILES:
+        raise ValueError(f"unknown profile {name!r}; choose one of {', '.join(PROFILES)}")
+    return PROFILES[name]
+
+
+Log = Callable[[str], None]
+
+
+def _done(path: Path) -> bool:
+    return (path / ".done").exists()
+
+
+def _mark(path: Path, info: dict[str, Any]) -> None:
+    write_json_atomic(path / ".done", info)
+
+
+def _cli(argv: Sequence[str]) -> None:
+    """Run a yawil sub-command in-process (their command lines are the stable, documented interface)."""
+    from yawil.cli import main
+
+    code = main(list(argv))
+    if code:
+        raise RuntimeError(f"`yawil {' '.join(argv)}` failed with exit code {code}")
+
+
+def collect_stage(out: Path, p: Profile, seed: int, log: Log) -> Path:
+    data = out / "data" / "full"
+    if _done(data):
+        log(f"collect: {data} done, skipped")
+        return data
+    log(f"collect: {p.frames} expert frames on the square -> {data}")
+    _cli(["collect", "--town", "square", "--weathers", "ClearNoon", "--frames", str(p.frames), "--out", str(data),
+          "--workers", str(p.collect_workers), "--seed", str(seed), "--vehicles", "0", "--pedestrians", "0"])
+    _mark(data, {"frames": p.frames, "seed": seed})
+    return data
+
+
+def subset_stage(out: Path, full: Path, log: Log) -> dict[str, Path]:
+    paths = {"full": full}
+    for folder, only, _ in DATASETS:
+        if folder == "full":
+            continue
+        dst = out / "data" / folder
+        if _done(dst):
+            log(f"subset: {dst} done, skipped")
+        else:
+            log(f"subset: {only} -> {dst}")
+            _cli(["data", "subset", str(full), "--only", only, "--out", str(dst)])
+            _mark(dst, {"only": only})
+        paths[folder] = dst
+    return paths
+
+
+def train_stage(out: Path, data: Path, dataset: str, model: str, p: Profile, seed: int, log: Log) -> Path:
+    from yawil.train import TrainConfig, train
+
+    run = out / "models" / dataset / model
+    best = run / "best.pt"
+    if _done(run) and best.exists():
+        log(f"train: {run} done, skipped")
+        return best
+    cfg = TrainConfig(model=model, data=[str(data)], out=str(run), epochs=p.epochs, batch_size=p.batch_size,
+                      max_steps=p.max_steps, max_minutes=p.max_minutes, seed=seed, progress=False)
+    resume = (run / "last.pt").exists()
+    log(f"train: {model} on {dataset} -> {run}{' (resumed)' if resume else ''}")
+    result = train(cfg, resume=resume)
+    if not best.exists():
+        raise RuntimeError(f"training {run} ended ({result.stopped_by}) without a best.pt")
+    _mark(run, {"epochs": result.epochs_done, "steps": result.steps, "best_val": result.best_val})
+    return best
+
+
+def drive(ckpt: Path, results: Path, p: Profile, seeds: int, log: Log, yaw_noise_deg: float = 0.0,
+          command_noise_p: float = 0.0) -> list[dict[str, Any]]:
+    """Drive the square tasks with one agent (resumable); returns its records."""
+    from yawil.bench.runner import AgentSpec, run_benchmark
+    from yawil.bench.suites import episodes
+
+    eps = episodes("square", routes=p.routes, seeds=seeds)
+    spec = AgentSpec(str(ckpt), yaw_noise_deg, command_noise_p)
+    summary = run_benchmark(eps, spec, results, workers=p.drive_workers, progress=False)
+    log(f"drive: {results.name}: {summary.ran} run, {summary.skipped} resumed")
+    keys = {e.key for e in eps}
+    return [r for r in iter_results(results) if f"{r['task']}/{r['condition']}/{r['route_id']}/{r['seed']}" in keys]
+
+
+def _n_tasks(p: Profile) -> int:
+    from yawil.bench.suites import SQUARE_TASKS, parse_range
+
+    return len(parse_range(p.routes, SQUARE_TASKS))
+
+
+def table1_markdown(cells: dict[tuple[str, str], int], n_tasks: int, profile: str) -> str:
+    """Table I: successes out of the tasks driven, datasets x methods."""
+    head = "| Dataset | " + " | ".join(t for _, t in METHODS) + " |"
+    lines = ["### Table I: number of successes on the square's turning tasks", "", head, "|---" * (len(METHODS) + 1) + "|"]
+    for folder, _, title in DATASETS:
+        row = [str(cells[(folder, m)]) if (folder, m) in cells else "—" for m, _ in METHODS]
+        lines.append(f"| {title} | " + " | ".join(row) + " |")
+    lines += ["", f"Successes out of {n_tasks} turning tasks (profile `{profile}`, seed 0)."]
+    return "\n".join(lines) + "\n"
+
+
+def square_experiment(out: str | Path, profile: str = "quick", seed: int = 0, log: Log = print) -> Path:
+    """Every stage of Table I; returns the path of table1.md."""
+    p = get_profile(profile)
+    root = Path(out)
+    root.mkdir(parents=True, exist_ok=True)
+    write_json_atomic(root / "profile.json", asdict(p))
+    full = collect_stage(root, p, seed, log)
+    data = subset_stage(root, full, log)
+    cells: dict[tuple[str, str], int] = {}
+    for folder, _, _ in DATASETS:
+        for model, _ in METHODS:
+            ckpt = train_stage(root, data[folder], folder, model, p, seed, log)
+            recs = drive(ckpt, root / "results" / f"{folder}-{model}", p, 1, log)
+            cells[(folder, model)] = sum(bool(r["success"]) for r in recs)
+    n = _n_tasks(p)
+    write_json_atomic(root / "table1.json", {"n_tasks": n, "profile": profile,
+                                             "cells": {f"{d}/{m}": v for (d, m), v in cells.items()}})
+    table = root / "table1.md"
+    table.write_text(table1_markdown(cells, n, profile), encoding="utf-8")
+    log(table.read_text(encoding="utf-8"))
+    return table
+
+
+def noise_candidates(root: Path, models: Sequence[str] | None = None) -> tuple[list[tuple[str, str]], str]:
+    """(dataset folder, model) pairs to test with noise: those that passed every task of Table I.
+
+    If none did (typical of the quick profile), the full-dataset models of the noise-relevant methods are
+    used instead and the returned note says so.
+    """
+    path = root / "table1.json"
+    if not path.exists():
+        raise ValueError(f"{path} not found: run `yawil experiment square --out {root}` first")
+    doc = json.loads(path.read_text(encoding="utf-8"))
+    n = int(doc["n_tasks"])
+    wanted = set(models) if models else {*GUIDED_YAW, "cil"}
+    passed = [tuple(k.split("/")) for k, v in doc["cells"].items() if int(v) == n]
+    chosen = [(d, m) for d, m in passed if m in wanted]
+    if chosen:
+        return [(str(d), str(m)) for d, m in chosen], f"models with {n}/{n} successes in Table I"
+    return [("full", m) for m in sorted(wanted)], f"no model passed all {n} tasks: full-dataset models used instead"
+
+
+def noise_experiment(out: str | Path, profile: str = "quick", models: Sequence[str] | None = None,
+                     log: Log = print) -> Path:
+    """Table II from the Table I models; returns the path of table2.md."""
+    p = get_profile(profile)
+    root = Path(out)
+    chosen, note = noise_candidates(root, models)
+    n = _n_tasks(p)
+    rows: list[str] = []
+    data: dict[str, Any] = {"note": note, "n_tasks": n, "seeds": p.noise_seeds, "rows": {}}
+    for dataset, model in chosen:
+        ckpt = root / "models" / dataset / model / "best.pt"
+        if not ckpt.exists():
+            raise ValueError(f"{ckpt} not found: the square experiment did not train {model} on {dataset}")
+        if model == "cil":
+            levels, kind = COMMAND_PS, "command"
+        elif model in GUIDED_YAW:
+            levels, kind = YAW_SIGMAS, "yaw"
+        else:
+            log(f"noise: {model} takes XY coordinates, yaw noise does not apply; skipped")
+            continue
+        cells = []
+        for level in levels:
+            tag = f"{dataset}-{model}-{kind}{level:g}"
+            recs = drive(ckpt, root / "noise" / tag, p, p.noise_seeds, log,
+                         yaw_noise_deg=level if kind == "yaw" else 0.0,
+                         command_noise_p=level if kind == "command" else 0.0)
+            per_seed = [sum(bool(r["success"]) for r in recs if r["seed"] == s) for s in range(p.noise_seeds)]
+            st = mean_std(per_seed)
+            cells.append(st.format(2))
+            data["rows"][tag] = {"per_seed": per_seed, "mean": st.value, "std": st.std}
+        label = dict(METHODS)[model] + ("" if dataset == "full" else f" ({dataset})")
+        head = "N(0, σ²), σ = " + " / ".join(f"{s:g}°" for s in YAW_SIGMAS) if kind == "yaw" else \
+            "wrong command p = " + " / ".join(f"{q:.0%}" for q in COMMAND_PS)
+        rows.append(f"| {label} | {head} | " + " | ".join(cells) + " |")
+    lines = ["### Table II: number of successes with noise", "",
+             "| Model | Noise | low | middle | high |", "|---|---|---|---|---|", *rows, "",
+             f"Mean ± population std over {p.noise_seeds} seeds of the successes out of {n} tasks; {note}. "
+             "Yaw noise: Gaussian on each waypoint's raw yaw every frame; CIL: a wrong command for 5 "
+             "consecutive frames, started with probability p per frame."]
+    write_json_atomic(root / "table2.json", data)
+    table = root / "table2.md"
+    table.write_text("\n".join(lines) + "\n", encoding="utf-8")
+    log(table.read_text(encoding="utf-8"))
+    return table

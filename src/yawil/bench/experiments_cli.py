@@ -1,0 +1,36 @@
+"""`yawil experiment square|noise`: the paper's Table I and Table II on the square scene, resumable."""
+
+from __future__ import annotations
+
+import argparse
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:  # type: ignore[type-arg]
+    p = subparsers.add_parser(
+        "experiment",
+        help="square experiments: Table I (road-option methods x datasets), Table II (noise)",
+        description="square: collect on the square map, build the 3 datasets, train 12 models, drive the 32 "
+        "turning tasks, write table1.md. noise: drive the models that passed every task again with yaw noise "
+        "(guided) or wrong commands (CIL), write table2.md. Every stage is skipped when its output exists.",
+    )
+    p.add_argument("which", choices=("square", "noise"))
+    p.add_argument("--profile", default="quick", choices=("quick", "paper"),
+                   help="quick: minutes-scale smoke run; paper: the paper's budgets (default quick)")
+    p.add_argument("--out", default="results/square", help="experiment folder (default results/square)")
+    p.add_argument("--seed", type=int, default=0, help="seed of collection and training (default 0)")
+    p.add_argument("--models", default=None, help="noise: comma-separated methods to test instead of the passing ones")
+    return p
+
+
+def run(args: argparse.Namespace) -> int:
+    from yawil.bench.experiments import noise_experiment, square_experiment
+
+    try:
+        if args.which == "square":
+            square_experiment(args.out, args.profile, seed=args.seed)
+        else:
+            models = [m.strip() for m in args.models.split(",")] if args.models else None
+            noise_experiment(args.out, args.profile, models=models)
+    except ValueError as err:
+        raise SystemExit(f"yawil experiment: {err}") from None
+    return 0

@@ -1,0 +1,103 @@
+"""The runner's loop and resume on a scripted world (the real world's tests are in test_bench_episode.py)."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from yawil.bench.records import EPISODES_FILE
+from yawil.bench.runner import AgentSpec, run_benchmark
+from yawil.bench.suites import episodes
+from yawil.sim.types import Control, Event, EventKind, Observation, Pose, RoadOption, Route, Scenario
+
+
+class LineWorld:
+    """The ego moves `throttle * 2` m per step along a straight 60 m route; a wall waits at x=crash_at."""
+
+    def __init__(self, crash_at: float | None = None) -> None:
+        self.crash_at = crash_at
+        self.resets: list[int] = []
+
+    def reset(self, scenario: Scenario, seed: int) -> Observation:
+        self.resets.append(seed)
+        xy = np.stack([np.arange(0, 61, 1.0), np.zeros(61)], axis=1)
+        self.route = Route(xy=xy, options=np.full(61, 4, np.int8), lane_yaw=np.zeros(61))
+        self.x, self.t, self.frame = 0.0, 0.0, 0
+        return self._obs(())
+
+    def _obs(self, events: tuple[Event, ...]) -> Observation:
+        return Observation(
+            image=None, speed=2.0, pose=Pose(self.x, 0.0, 0.0), route=self.route, route_index=int(self.x),
+            command=RoadOption.LANEFOLLOW, events=events, time=self.t, frame=self.frame, done=False,
+            distance_driven=self.x, town="town01", bounds=(0, -5, 60, 5), weather="ClearNoon",
+        )
+
+    def step(self, control: Control) -> Observation:
+        self.x += 2.0 * control.throttle
+        self.t += 0.1
+        self.frame += 1
+        ev: tuple[Event, ...] = ()
+        if self.frame == 3:
+            ev = (Event(EventKind.LANE_INVASION, self.t, self.x, 0, detail="opposite_lane"),)
+        if self.crash_at is not None and self.x >= self.crash_at:
+            ev = (Event(EventKind.COLLISION, self.t, self.x, 0.0, other_id=None, other_type="static"),)
+        return self._obs(ev)
+
+    def close(self) -> None:
+        pass
+
+
+class Gas:
+    def __init__(self, throttle: float = 1.0) -> None:
+        self.throttle = throttle
+
+    def reset(self) -> None:
+        pass
+
+    def act(self, obs: Observation) -> Control:
+        return Control(0.0, self.throttle, 0.0)
+
+
+def test_success_collision_timeout_and_resume(tmp_path: Path) -> None:
+    eps = episodes("corl2017", conditions=["training"], tasks=["straight"], routes="0:3", seeds=1)
+    world = LineWorld()
+    spec = AgentSpec("scripted")
+    s = run_benchmark(eps[:2], spec, tmp_path, world_factory=lambda: world, agent_factory=lambda seed: Gas(),
+                      progress=False)
+    assert (s.ran, s.skipped, s.successes) == (2, 0, 2)
+    assert world.resets == [0, 1]  # world seed = 1000 * seed + route id
+    rec = s.records[0]
+    assert rec["success"] and rec["reason"] is None and rec["lane_opposite"] == 1
+    assert rec["steps"] == 29 and rec["time_s"] == pytest.approx(2.9)  # at x = 58 m the goal (60 m) is 2 m away
+    assert {"suite", "task", "condition", "route_id", "town", "weather", "seed", "agent", "km_driven",
+            "lane_offroad", "red_lights", "lights_passed", "collisions", "trajectory", "route_xy"} <= set(rec)
+    # resume: the first two are skipped, the third runs; a crash ends it with the collision's kind
+    world2 = LineWorld(crash_at=10.0)
+    s2 = run_benchmark(eps, spec, tmp_path, world_factory=lambda: world2, agent_factory=lambda seed: Gas(),
+                       progress=False)
+    assert (s2.ran, s2.skipped, s2.successes) == (1, 2, 0)
+    assert world2.resets == [2]
+    assert s2.records[0]["reason"] == "collision_static" and s2.records[0]["collisions"][0]["type"] == "static"
+    lines = (tmp_path / EPISODES_FILE).read_text().splitlines()
+    assert [json.loads(x)["route_id"] for x in lines] == [0, 1, 2]
+
+
+def test_timeout_when_the_agent_does_not_move(tmp_path: Path) -> None:
+    ep = episodes("corl2017", conditions=["training"], tasks=["straight"], routes="0", seeds=1)[0]
+    s = run_benchmark([ep], AgentSpec("scripted"), tmp_path, world_factory=LineWorld,
+                      agent_factory=lambda seed: Gas(0.0), progress=False)
+    rec = s.records[0]
+    assert rec["reason"] == "timeout" and rec["time_s"] == pytest.approx(ep.timeout_s, abs=0.1)
+
+
+def test_bad_agent_and_workers(tmp_path: Path) -> None:
+    eps = episodes("corl2017", conditions=["training"], tasks=["straight"], routes="0", seeds=1)
+    with pytest.raises(ValueError, match="checkpoint"):
+        run_benchmark(eps, AgentSpec(str(tmp_path / "missing.pt")), tmp_path / "a", progress=False)
+    with pytest.raises(ValueError, match="workers"):
+        run_benchmark(eps, AgentSpec("expert"), tmp_path / "b", workers=0, progress=False)
+    with pytest.raises(ValueError, match="not to the expert"):
+        run_benchmark(eps, AgentSpec("expert", yaw_noise_deg=10), tmp_path / "c", progress=False)

@@ -268,12 +268,12 @@ def _map_figure(town: str) -> Any:
 
     try:
         from yawil.sim.town.birdseye import draw_birdseye
-        from yawil.sim.town.layout import load_town_geometry  # type: ignore[attr-defined]
+        from yawil.sim.town.town import get_town
     except ImportError:
         fig, ax = plt.subplots(figsize=(7, 7))
         ax.set_aspect("equal")
         return fig
-    fig = draw_birdseye(load_town_geometry(town))
+    fig = draw_birdseye(get_town(town).geometry)
     return fig
 
 

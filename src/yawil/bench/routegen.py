@@ -84,10 +84,9 @@ def classify(route: Route) -> tuple[str | None, tuple[str, ...]]:
 
 
 def _lanes(town: str) -> Any:
-    from yawil.sim.town.lanes import LaneGraph
-    from yawil.sim.town.layout import load_layout
+    from yawil.sim.town.town import get_town
 
-    return LaneGraph(load_layout(town))
+    return get_town(town).lanes
 
 
 def _replan(lanes: Any, start: Pose, goal: Pose) -> Route:

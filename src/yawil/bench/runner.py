@@ -176,9 +176,9 @@ class _Recorder:
     def __init__(self, obs: Observation) -> None:
         from yawil.explain import figure_to_array
         from yawil.sim.town.birdseye import draw_birdseye
-        from yawil.sim.town.layout import load_town_geometry  # type: ignore[attr-defined]
+        from yawil.sim.town.town import get_town
 
-        geometry = load_town_geometry(obs.town)
+        geometry = get_town(obs.town).geometry
         fig = draw_birdseye(geometry, route_xy=obs.route.xy)
         self._background = figure_to_array(fig)
         ax = fig.axes[0]

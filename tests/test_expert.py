@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from yawil.expert import Expert, ExpertConfig, expert_info
+from yawil.sim.town.dynamics import EgoState, VehicleParams, step_bicycle
 from yawil.sim.types import (
     DT,
     AgentState,
@@ -74,33 +75,19 @@ def vehicle(x: float, y: float, yaw: float = 0.0, speed: float = 0.0, ident: int
 
 
 class Bicycle:
-    """A kinematic bicycle with the embedded backend's nominal limits, to close the loop without the world.
-
-    The state is the rear axle (where the bicycle model is exact); x, y report the centre, as a pose does.
-    """
-
-    WHEELBASE = 2.9
+    """The embedded backend's ego dynamics (kinematic bicycle, steer rate limit), to close the loop cheaply."""
 
     def __init__(self, x: float, y: float, yaw: float, speed: float = 0.0) -> None:
-        self.rx, self.ry = x - 0.5 * self.WHEELBASE * math.cos(yaw), y - 0.5 * self.WHEELBASE * math.sin(yaw)
-        self.yaw, self.speed = yaw, speed
+        self.state = EgoState(x, y, yaw, speed)
+        self.params = VehicleParams()
 
-    @property
-    def x(self) -> float:
-        return self.rx + 0.5 * self.WHEELBASE * math.cos(self.yaw)
-
-    @property
-    def y(self) -> float:
-        return self.ry + 0.5 * self.WHEELBASE * math.sin(self.yaw)
+    x = property(lambda self: self.state.x)
+    y = property(lambda self: self.state.y)
+    yaw = property(lambda self: self.state.yaw)
+    speed = property(lambda self: self.state.speed)
 
     def step(self, c: Control) -> None:
-        c.validate()
-        delta = -c.steer * math.radians(35.0)
-        accel = 3.5 * c.throttle - 8.0 * c.brake - 0.05 * self.speed
-        self.speed = max(self.speed + accel * DT, 0.0)
-        self.rx += self.speed * math.cos(self.yaw) * DT
-        self.ry += self.speed * math.sin(self.yaw) * DT
-        self.yaw += self.speed / self.WHEELBASE * math.tan(delta) * DT
+        self.state = step_bicycle(self.state, c.validate(), self.params)
 
 
 # ------------------------------------------------------------------------------------------ open loop

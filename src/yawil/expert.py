@@ -42,7 +42,7 @@ class ExpertConfig:
     max_lateral_accel: float = 1.6  # m/s^2, limits the speed in curves
     min_curve_speed: float = 2.5  # m/s, never plan slower than this for curvature alone
     comfort_decel: float = 2.5  # m/s^2, braking profile towards stop points
-    max_decel: float = 7.0  # m/s^2, what full braking achieves (emergency)
+    max_decel: float = 8.0  # m/s^2, what full braking achieves (the embedded ego's brake)
     plan_accel: float = 1.5  # m/s^2, assumed when predicting when the ego reaches a point
     # lights
     stop_line_margin: float = 1.0  # m between the front bumper and the stop line when stopped

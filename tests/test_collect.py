@@ -1,0 +1,232 @@
+"""The collection loop: noise labels, frame thinning, collision policy, resume, workers, the CLI.
+
+Most tests drive a small scripted world (a straight road, the real ego dynamics, a synthetic image) so
+they check the collector's own logic in well under a second; the last ones use the embedded simulator.
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from yawil.data.collect import (
+    CollectConfig,
+    SteeringNoise,
+    collect,
+    episode_id,
+    plan_episode,
+    run_episode,
+)
+from yawil.data.manifest import read_manifest
+from yawil.data.reader import open_episode  # noqa: F401  (the reader must accept what we write)
+from yawil.sim.town.dynamics import EgoState, VehicleParams, step_bicycle
+from yawil.sim.types import (
+    DT,
+    Control,
+    Event,
+    EventKind,
+    Observation,
+    Privileged,
+    RoadOption,
+    Route,
+    Scenario,
+)
+
+# ------------------------------------------------------------------------------------------ scripted world
+
+
+class LineWorld:
+    """A 120 m straight road then a gentle curve; optional collision at a frame. Records applied controls."""
+
+    collision_at: int | None = None
+
+    def __init__(self) -> None:
+        self.applied: list[Control] = []
+
+    def reset(self, scenario: Scenario, seed: int) -> Observation:
+        straight = np.stack([np.arange(0.0, 121.0), np.zeros(121)], axis=1)
+        a = np.linspace(0.0, math.pi / 2, 40)[1:]
+        arc = np.stack([120.0 + 25.0 * np.sin(a), 25.0 - 25.0 * np.cos(a)], axis=1)
+        xy = np.concatenate([straight, arc])
+        d = np.diff(xy, axis=0)
+        yaw = np.concatenate([np.arctan2(d[:, 1], d[:, 0]), [math.pi / 2]])
+        self.route = Route(xy=xy, options=np.full(len(xy), int(RoadOption.LANEFOLLOW), np.int8), lane_yaw=yaw)
+        self.state = EgoState(0.0, 0.0, 0.0, 0.0)
+        self.frame, self.seed, self.weather, self.camera = 0, seed, scenario.weather, scenario.camera
+        self.applied = []
+        return self._obs(())
+
+    def _obs(self, events: tuple[Event, ...]) -> Observation:
+        st = self.state
+        idx = int(np.argmin(np.linalg.norm(self.route.xy - np.array([st.x, st.y]), axis=1)))
+        done = idx >= len(self.route) - 2
+        img = None
+        if self.camera:
+            img = np.full((88, 200, 3), (self.frame * 7 + self.seed) % 256, dtype=np.uint8)
+        if done:
+            events = (*events, Event(EventKind.GOAL_REACHED, self.frame * DT, st.x, st.y))
+        return Observation(
+            image=img, speed=st.speed, pose=st.pose, route=self.route, route_index=idx,
+            command=RoadOption.LANEFOLLOW, events=events, time=self.frame * DT, frame=self.frame, done=done,
+            distance_driven=0.0, town="line", bounds=(-10.0, -10.0, 160.0, 160.0), weather=self.weather,
+            privileged=Privileged(),
+        )
+
+    def step(self, control: Control) -> Observation:
+        self.applied.append(control.validate())
+        self.state = step_bicycle(self.state, control, VehicleParams())
+        self.frame += 1
+        events: tuple[Event, ...] = ()
+        if self.collision_at is not None and self.frame == self.collision_at:
+            events = (Event(EventKind.COLLISION, self.frame * DT, self.state.x, self.state.y, 5, "vehicle"),)
+        return self._obs(events)
+
+    def close(self) -> None:
+        pass
+
+
+def line_world() -> LineWorld:
+    return LineWorld()
+
+
+def crash_world() -> LineWorld:
+    w = LineWorld()
+    w.collision_at = 150
+    return w
+
+
+def small_cfg(**kw: object) -> CollectConfig:
+    base: dict[str, object] = dict(town="line", weathers=("ClearNoon", "WetNoon"), vehicles=(0, 0), pedestrians=(0, 0),
+                                   noise_fraction=0.3, straight_keep=1.0)
+    base.update(kw)
+    return CollectConfig(**base)  # type: ignore[arg-type]
+
+
+# ---------------------------------------------------------------------------------------------- unit tests
+
+
+def test_noise_fraction_and_bursts_are_seeded() -> None:
+    def run(seed: int) -> np.ndarray:
+        n = SteeringNoise(0.1, 0.5, (0.5, 1.0), np.random.default_rng(seed))
+        return np.array([n() for _ in range(20000)])
+
+    a, b = run(3), run(3)
+    assert np.array_equal(a, b)
+    assert 0.08 < np.mean(a != 0.0) < 0.12
+    assert np.abs(a).max() <= 0.5
+    starts = np.flatnonzero((a[1:] != 0) & (a[:-1] == 0))
+    lengths = [int(np.argmax(a[s + 1 :] == 0)) for s in starts[:50]]
+    assert min(lengths) >= 5 and max(lengths) <= 10 + 10  # 0.5-1 s bursts (back-to-back bursts may merge)
+
+
+def test_plan_is_a_function_of_seed_and_index() -> None:
+    cfg = small_cfg(vehicles=(10, 30), pedestrians=(5, 20))
+    p = plan_episode(cfg, 2, 7)
+    assert p == plan_episode(cfg, 2, 7)
+    assert p.episode_id == episode_id(2, 7) == 200_007
+    assert 10 <= p.vehicles <= 30 and 5 <= p.pedestrians <= 20
+    assert [plan_episode(cfg, 0, i).weather for i in range(4)] == ["ClearNoon", "WetNoon"] * 2
+    with pytest.raises(ValueError, match="index"):
+        episode_id(0, 100_000)
+
+
+def test_bad_config_is_an_error() -> None:
+    with pytest.raises(ValueError, match="weather"):
+        small_cfg(weathers=("Sunny",))
+    with pytest.raises(ValueError, match="on_collision"):
+        small_cfg(on_collision="ignore")
+    with pytest.raises(ValueError, match="vehicles"):
+        small_cfg(vehicles=(5, 2))
+    with pytest.raises(ValueError, match="budget"):
+        collect("/nonexistent", frames=None, episodes=None)
+
+
+def test_labels_are_the_experts_control_not_the_noisy_one(tmp_path: Path) -> None:
+    world = LineWorld()
+    cfg = small_cfg()
+    from yawil.data.collect import dataset_config
+    from yawil.data.writer import DatasetWriter
+    from yawil.expert import ExpertConfig
+    from yawil.guidance import GuidanceConfig
+
+    writer = DatasetWriter(tmp_path / "ds", dataset_config(cfg, GuidanceConfig(), ExpertConfig()))
+    r = run_episode(world, plan_episode(cfg, 0, 0), cfg, writer)
+    assert r.outcome == "goal" and r.frames_kept == r.frames_run > 100
+    with h5py.File(tmp_path / "ds" / "episodes" / "ep_000000.h5") as f:
+        steer, noise, frame = f["steer"][:], f["noise"][:].astype(bool), f["frame"][:]
+        lft = f["lane_follow_turn"][:].astype(bool)
+        assert f["guidance_yaw"].shape == (len(steer), 15) and f["image"].shape == (len(steer), 88, 200, 3)
+    applied = np.array([world.applied[i].steer for i in frame])
+    assert noise.any() and (~noise).any()
+    assert np.allclose(applied[~noise], steer[~noise], atol=1e-6)  # quiet frames: what was applied
+    assert np.all(np.abs(applied[noise] - steer[noise]) > 1e-6)  # noisy frames: the label is the expert's
+    assert lft.any() and not lft[:50].any()  # the curve at the end is a lane-follow turn, the straight is not
+
+
+def test_straight_and_blocked_thinning(tmp_path: Path) -> None:
+    cfg = small_cfg(noise_fraction=0.0, straight_keep=0.25)
+    r = run_episode(LineWorld(), plan_episode(cfg, 0, 1), cfg, None)
+    assert r.outcome == "goal"
+    assert r.frames_kept < 0.8 * r.frames_run  # about 3/4 of the long straight dropped
+
+
+@pytest.mark.parametrize(("policy", "outcome"), [("trim", "collision"), ("keep", "collision"), ("discard", "discarded(collision)")])
+def test_collision_policy(tmp_path: Path, policy: str, outcome: str) -> None:
+    s = collect(tmp_path / policy, town="line", weathers="ClearNoon", episodes=1, progress=False,
+                world_factory=crash_world, config=small_cfg(on_collision=policy))
+    assert s.outcomes == {outcome: 1}
+    m = read_manifest(tmp_path / policy)
+    if policy == "discard":
+        assert m.episodes == []
+    else:
+        kept = m.episodes[0].frames
+        assert kept == (150 - 20 if policy == "trim" else 150)
+        assert m.episodes[0].outcome == "collision"
+
+
+def test_resume_never_duplicates_and_results_are_deterministic(tmp_path: Path) -> None:
+    cfg = small_cfg()
+    s1 = collect(tmp_path / "a", town="line", weathers="ClearNoon,WetNoon", episodes=2, progress=False,
+                 world_factory=line_world, config=cfg)
+    assert s1.episodes_written == 2
+    s2 = collect(tmp_path / "a", town="line", weathers="ClearNoon,WetNoon", episodes=3, progress=False,
+                 world_factory=line_world, config=cfg)
+    assert s2.episodes_skipped == 2 and s2.episodes_written == 1
+    m = read_manifest(tmp_path / "a")
+    assert sorted(m.episode_ids()) == [0, 1, 2]
+    # a fresh run of the same command gives the same bytes of labels
+    collect(tmp_path / "b", town="line", weathers="ClearNoon,WetNoon", episodes=3, progress=False,
+            world_factory=line_world, config=cfg)
+    for ep in ("ep_000000.h5", "ep_000002.h5"):
+        with h5py.File(tmp_path / "a" / "episodes" / ep) as fa, h5py.File(tmp_path / "b" / "episodes" / ep) as fb:
+            for name in ("steer", "throttle", "brake", "noise", "guidance_yaw", "image"):
+                assert np.array_equal(fa[name][:], fb[name][:])
+    with pytest.raises(ValueError, match="config differs"):
+        collect(tmp_path / "a", town="line", weathers="ClearNoon", episodes=1, progress=False, world_factory=line_world,
+                config=cfg)
+
+
+def test_frame_budget_stops_early(tmp_path: Path) -> None:
+    s = collect(tmp_path / "f", town="line", weathers="ClearNoon", frames=10, progress=False,
+                world_factory=line_world, config=small_cfg())
+    assert s.episodes_written == 1 and s.dataset_frames >= 10
+    s2 = collect(tmp_path / "f", town="line", weathers="ClearNoon", frames=10, progress=False,
+                 world_factory=line_world, config=small_cfg())
+    assert s2.episodes_written == 0  # the budget is already met: nothing to do
+
+
+def test_two_workers_match_one(tmp_path: Path) -> None:
+    cfg = small_cfg()
+    collect(tmp_path / "one", town="line", weathers="ClearNoon,WetNoon", episodes=3, workers=1, progress=False,
+            world_factory=line_world, config=cfg)
+    s = collect(tmp_path / "two", town="line", weathers="ClearNoon,WetNoon", episodes=3, workers=2, progress=True,
+                world_factory=line_world, config=cfg)
+    assert s.episodes_written == 3
+    one, two = read_manifest(tmp_path / "one"), read_manifest(tmp_path / "two")
+    assert sorted(one.episode_ids()) == sorted(two.episode_ids()) == [0, 1, 2]
+    for e in one.episodes:
+        assert two.entry(e.episode).frames == e.frames and two.entry(e.episode).noise_frames == e.noise_frames

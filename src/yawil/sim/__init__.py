@@ -1,1 +1,64 @@
+"""The simulator interface: backend-neutral types, `make_world`, and the Gymnasium environments.
 
+`make_world("embedded")` gives the built-in simulator (yawil.sim.town); `make_world("carla", ...)` the CARLA
+backend when it is installed. Importing this package registers `yawil/Town01-v0`, `yawil/Town02-v0` and
+`yawil/Square-v0` with Gymnasium (lazily: the environment module loads on `gymnasium.make`).
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+from yawil.sim.types import (
+    COMMANDS,
+    DT,
+    AgentState,
+    Control,
+    Event,
+    EventKind,
+    LightState,
+    Observation,
+    Pose,
+    Privileged,
+    RoadOption,
+    Route,
+    Scenario,
+    World,
+    command_index,
+    wrap_angle,
+)
+
+BACKENDS: tuple[str, ...] = ("embedded", "carla")
+
+
+def make_world(backend: str = "embedded", **kwargs: Any) -> World:
+    """A simulator backend by name; keyword arguments go to its constructor."""
+    if backend == "embedded":
+        from yawil.sim.town.world import EmbeddedWorld
+
+        return EmbeddedWorld(**kwargs)
+    if backend == "carla":
+        try:
+            from yawil.sim.carla.world import CarlaWorld  # type: ignore[import-not-found]
+        except ModuleNotFoundError as err:
+            raise ValueError(f"backend 'carla' is not available ({err}); install the carla client package") from None
+        return CarlaWorld(**kwargs)  # type: ignore[no-any-return]
+    raise ValueError(f"unknown simulator backend {backend!r}; choose one of {', '.join(BACKENDS)}")
+
+
+def _register_envs() -> None:
+    try:
+        import gymnasium
+    except ModuleNotFoundError:  # pragma: no cover - gymnasium is a hard dependency
+        return
+    for env_id, town in (("yawil/Town01-v0", "town01"), ("yawil/Town02-v0", "town02"), ("yawil/Square-v0", "square")):
+        if env_id not in gymnasium.registry:
+            gymnasium.register(id=env_id, entry_point="yawil.sim.gym_env:YawilDriveEnv", kwargs={"town": town})
+
+
+_register_envs()
+
+__all__ = [
+    "BACKENDS", "COMMANDS", "DT", "AgentState", "Control", "Event", "EventKind", "LightState", "Observation", "Pose",
+    "Privileged", "RoadOption", "Route", "Scenario", "World", "command_index", "make_world", "wrap_angle",
+]

@@ -1,0 +1,187 @@
+"""Route planning on the lane graph, with road options as CARLA's global/local planner give them.
+
+A route is the shortest lane sequence between two snapped poses, sampled every metre. Options: LANEFOLLOW on
+road lanes and corner curves; LEFT/RIGHT/STRAIGHT on junction connectors and on the last `PRE_JUNCTION`
+metres before them (where CARLA's local planner already announces the manoeuvre).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from yawil.sim.town.lanes import LaneGraph
+from yawil.sim.types import Pose, RoadOption, Route
+
+PRE_JUNCTION = 5.0  # metres before a junction connector that already carry its option
+WAYPOINT_STEP = 1.0
+
+
+@dataclass(frozen=True)
+class PlannedRoute:
+    """A Route plus what the backend needs internally: the lane and arc length of each waypoint."""
+
+    route: Route
+    lanes: np.ndarray  # (N,) lane id per waypoint
+    s: np.ndarray  # (N,) arc length on that lane
+    lane_sequence: tuple[int, ...]
+
+
+def _graph(lanes: LaneGraph):  # type: ignore[no-untyped-def]
+    g = getattr(lanes, "_nx", None)
+    if g is None:
+        import networkx as nx
+
+        g = nx.DiGraph()
+        g.add_nodes_from(range(len(lanes.lanes)))
+        for ln in lanes.lanes:
+            for nxt in ln.successors:
+                g.add_edge(ln.id, nxt, weight=ln.length)
+        lanes._nx = g  # type: ignore[attr-defined]
+    return g
+
+
+def plan_route(lanes: LaneGraph, start: Pose, goal: Pose) -> PlannedRoute:
+    """Shortest route from start to goal, each snapped to the nearest lane of matching direction."""
+    import networkx as nx
+
+    ls, ss, _ = lanes.snap(start.x, start.y, start.yaw)
+    lg, sg, _ = lanes.snap(goal.x, goal.y, goal.yaw)
+    if ls == lg and sg >= ss:
+        seq = [ls]
+    else:
+        g = _graph(lanes)
+        try:
+            _, path = nx.multi_source_dijkstra(g, set(lanes.lanes[ls].successors), target=lg, weight="weight")
+        except (nx.NetworkXNoPath, ValueError):
+            raise ValueError(
+                f"goal {goal} is unreachable from start {start} on town {lanes.layout.name!r}"
+            ) from None
+        seq = [ls, *path]
+    return sample_route(lanes, seq, ss, sg)
+
+
+def sample_route(lanes: LaneGraph, seq: list[int], s_start: float, s_goal: float) -> PlannedRoute:
+    """Dense waypoints along a lane sequence from s_start on the first lane to s_goal on the last."""
+    lo = np.array([s_start] + [0.0] * (len(seq) - 1))
+    hi = np.array([lanes.length[i] for i in seq])
+    hi[-1] = s_goal
+    seg_len = np.maximum(hi - lo, 0.0)
+    cum = np.concatenate([[0.0], np.cumsum(seg_len)])
+    total = float(cum[-1])
+    if total < 1.0:
+        raise ValueError(f"route is only {total:.2f} m long; start and goal must be at least 1 m apart along the lanes")
+    d = np.arange(0.0, total, WAYPOINT_STEP)
+    if total - d[-1] > 1e-6:
+        d = np.append(d, total)
+    seg = np.clip(np.searchsorted(cum, d, side="right") - 1, 0, len(seq) - 1)
+    lane_ids = np.array(seq)[seg]
+    s_local = lo[seg] + (d - cum[seg])
+    xy = np.empty((len(d), 2))
+    yaw = np.empty(len(d))
+    options = np.empty(len(d), dtype=np.int8)
+    for k in np.unique(seg):
+        m = seg == k
+        lane = lanes.lanes[seq[k]]
+        xy[m], yaw[m] = lane.evaluate(s_local[m])
+        options[m] = int(lane.option)
+    for k, lid in enumerate(seq):
+        opt = lanes.lanes[lid].option
+        if opt is RoadOption.LANEFOLLOW:
+            continue
+        before = (d >= cum[k] - PRE_JUNCTION) & (d < cum[k]) & (options == int(RoadOption.LANEFOLLOW))
+        options[before] = int(opt)
+    lights: list[tuple[int, int]] = []
+    for k, lid in enumerate(seq):
+        light = int(lanes.light_of_lane[lid])
+        if light < 0 or k == len(seq) - 1:
+            continue
+        stop_s = lanes.approaches[light].stop_s
+        if stop_s < lo[k]:
+            continue
+        dist = cum[k] + stop_s - lo[k]
+        lights.append((int(min(np.searchsorted(d, dist), len(d) - 1)), light))
+    route = Route(xy=xy, options=options, lane_yaw=yaw, lights=tuple(lights))
+    return PlannedRoute(route, lane_ids, s_local, tuple(seq))
+
+
+def random_route(lanes: LaneGraph, rng: np.random.Generator, min_length: float = 0.0, max_tries: int = 2000,
+                 start: Pose | None = None, goal: Pose | None = None) -> PlannedRoute:
+    """A route between random road-lane points (or the given start/goal), redrawn until min_length long."""
+    import networkx as nx
+
+    g = _graph(lanes)
+    fixed_start = lanes.snap(start.x, start.y, start.yaw)[:2] if start is not None else None
+    fixed_goal = lanes.snap(goal.x, goal.y, goal.yaw)[:2] if goal is not None else None
+    best: PlannedRoute | None = None
+    for _ in range(max_tries):
+        ls, lg = (int(v) for v in rng.integers(0, lanes.n_road_lanes, size=2))
+        ss = float(rng.uniform(0.1, 0.6) * lanes.length[ls])
+        sg = float(rng.uniform(0.4, 0.9) * lanes.length[lg])
+        if fixed_start is not None:
+            ls, ss = fixed_start
+        if fixed_goal is not None:
+            lg, sg = fixed_goal
+        if ls == lg and sg > ss + 1.0:
+            seq = [ls]
+        else:
+            try:
+                _, path = nx.multi_source_dijkstra(g, set(lanes.lanes[ls].successors), target=lg, weight="weight")
+            except nx.NetworkXNoPath:
+                continue
+            seq = [ls, *path]
+        planned = sample_route(lanes, seq, ss, sg)
+        if planned.route.length >= min_length:
+            return planned
+        if best is None or planned.route.length > best.route.length:
+            best = planned
+    longest = 0.0 if best is None else best.route.length
+    raise ValueError(
+        f"no route of at least {min_length:.0f} m found on town {lanes.layout.name!r} in {max_tries} draws "
+        f"(longest {longest:.0f} m)"
+    )
+
+
+def route_endpoints(planned: PlannedRoute) -> tuple[Pose, Pose]:
+    """Start and goal poses of a planned route (what a route file stores)."""
+    r = planned.route
+    return (Pose(float(r.xy[0, 0]), float(r.xy[0, 1]), float(r.lane_yaw[0])),
+            Pose(float(r.xy[-1, 0]), float(r.xy[-1, 1]), float(r.lane_yaw[-1])))
+
+
+@dataclass(frozen=True)
+class TurnTask:
+    """One turning manoeuvre of a town (the square scene's 32 tasks)."""
+
+    name: str
+    kind: str  # "corner" | "tjunction" | "crossing"
+    option: RoadOption  # LANEFOLLOW for corners, LEFT/RIGHT at junctions
+    direction: str  # "left" | "right"
+    start: Pose
+    goal: Pose
+
+
+def turn_tasks(lanes: LaneGraph, lead_in: float = 25.0, lead_out: float = 25.0) -> list[TurnTask]:
+    """Every turning connector (corners both ways, junction left/right turns) as a start/goal task."""
+    tasks: list[TurnTask] = []
+    kinds = {2: "corner", 3: "tjunction", 4: "crossing"}
+    for ln in lanes.lanes[lanes.n_road_lanes :]:
+        entry, exit_ = lanes.lanes[ln.entry], lanes.lanes[ln.exit]
+        h0 = float(entry.evaluate(np.array([entry.length]))[1][0])
+        h1 = float(exit_.evaluate(np.array([0.0]))[1][0])
+        turn = math.remainder(h1 - h0, 2 * math.pi)
+        if ln.option is RoadOption.STRAIGHT or abs(turn) < math.radians(30):
+            continue
+        s0 = max(0.0, entry.length - lead_in)
+        s1 = min(exit_.length, lead_out)
+        (p0,), (y0,) = entry.evaluate(np.array([s0]))
+        (p1,), (y1,) = exit_.evaluate(np.array([s1]))
+        direction = "left" if turn > 0 else "right"
+        key = lanes.layout.nodes[ln.node][0]
+        kind = kinds[int(lanes.degree[ln.node])]
+        tasks.append(TurnTask(f"{kind}-{key}-{direction}-from-{lanes.layout.nodes[entry.start_node][0]}", kind,
+                              ln.option, direction, Pose(float(p0[0]), float(p0[1]), float(y0)),
+                              Pose(float(p1[0]), float(p1[1]), float(y1))))
+    return tasks

@@ -1,0 +1,183 @@
+"""Background traffic: vehicles on the lane graph, vectorised with numpy.
+
+Each vehicle holds (lane, arc length, speed) and the next two lanes of its random route, drawn from the
+episode's generator whenever it moves on. Longitudinal control is the Intelligent Driver Model against the
+nearest of: the vehicle ahead on its path, the ego or a pedestrian in its corridor, a red/yellow stop line,
+or the stop line of a junction whose conflicting connector is occupied (the yielding rule).
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from yawil.sim.town.lanes import LaneGraph
+from yawil.sim.town.lights import GREEN, YELLOW
+from yawil.sim.types import RoadOption
+
+VEHICLE_COLORS = ((0.75, 0.1, 0.1), (0.1, 0.2, 0.6), (0.85, 0.85, 0.85), (0.1, 0.1, 0.1), (0.5, 0.5, 0.55),
+                  (0.9, 0.7, 0.1), (0.2, 0.45, 0.25), (0.45, 0.25, 0.15))
+INF = 1e9
+
+
+class Vehicles:
+    A_MAX = 2.0  # IDM comfortable acceleration
+    B_COMF = 3.0  # IDM comfortable deceleration
+    B_MAX = 8.0
+    S0 = 2.5  # standstill gap, m
+    T = 1.2  # time headway, s
+    TURN_SPEED = 5.0
+    CORRIDOR = 30.0
+
+    def __init__(self, lanes: LaneGraph) -> None:
+        self.lanes = lanes
+        self.is_turn = np.array([ln.kind == "connector" and ln.option in (RoadOption.LEFT, RoadOption.RIGHT)
+                                 or (ln.kind == "connector" and self.lanes.degree[ln.node] == 2)
+                                 for ln in lanes.lanes])
+        self.is_gate = np.array([ln.kind == "connector" and lanes.degree[ln.node] >= 3 for ln in lanes.lanes])
+        self.stop_s = np.array([lanes.approaches[i].stop_s if i >= 0 else ln.length - lanes.STOP_BACK
+                                for i, ln in zip(lanes.light_of_lane.tolist(), lanes.lanes, strict=True)])
+        self.successors = [np.array(ln.successors, dtype=np.int64) for ln in lanes.lanes]
+        self.n = 0
+        self._alloc(0)
+
+    def _alloc(self, n: int) -> None:
+        self.n = n
+        self.lane = np.zeros(n, dtype=np.int64)
+        self.s = np.zeros(n)
+        self.v = np.zeros(n)
+        self.v0 = np.zeros(n)
+        self.nxt1 = np.zeros(n, dtype=np.int64)
+        self.nxt2 = np.zeros(n, dtype=np.int64)
+        self.length = np.zeros(n)
+        self.width = np.zeros(n)
+        self.height = np.zeros(n)
+        self.color_index = np.zeros(n, dtype=np.int64)
+        self.x = np.zeros(n)
+        self.y = np.zeros(n)
+        self.yaw = np.zeros(n)
+        self.ids = np.arange(1, n + 1)
+
+    def _pick(self, lane: int, rng: np.random.Generator) -> int:
+        succ = self.successors[lane]
+        return int(succ[int(rng.integers(len(succ)))])
+
+    def spawn(self, n: int, rng: np.random.Generator, keep_out: list[tuple[float, float, float]]) -> None:
+        """Place n vehicles on road lanes, clear of each other and of the (x, y, radius) keep-out discs."""
+        self._alloc(n)
+        lanes = self.lanes
+        weights = lanes.length[: lanes.n_road_lanes] - 12.0
+        weights = np.maximum(weights, 0.0) / np.maximum(weights, 0.0).sum()
+        placed = 0
+        tries = 0
+        while placed < n:
+            tries += 1
+            if tries > 200 * n + 1000:
+                raise ValueError(f"cannot place {n} vehicles on town {lanes.layout.name!r} without overlaps; "
+                                 f"placed {placed}. Use fewer vehicles.")
+            lane = int(rng.choice(lanes.n_road_lanes, p=weights))
+            s = float(rng.uniform(6.0, lanes.length[lane] - 6.0))
+            (x,), (y,), _ = lanes.lookup(np.array([lane]), np.array([s]))
+            if any(math.hypot(x - kx, y - ky) < kr for kx, ky, kr in keep_out):
+                continue
+            if placed and np.min(np.hypot(self.x[:placed] - x, self.y[:placed] - y)) < 9.0:
+                continue
+            i = placed
+            self.lane[i], self.s[i] = lane, s
+            self.x[i], self.y[i] = x, y
+            self.nxt1[i] = self._pick(lane, rng)
+            self.nxt2[i] = self._pick(int(self.nxt1[i]), rng)
+            self.v0[i] = rng.uniform(6.5, 9.0)
+            self.length[i] = rng.uniform(3.8, 5.0)
+            self.width[i] = rng.uniform(1.7, 2.0)
+            self.height[i] = rng.uniform(1.4, 1.9)
+            self.color_index[i] = rng.integers(len(VEHICLE_COLORS))
+            placed += 1
+        self._update_pose()
+
+    def _update_pose(self) -> None:
+        if self.n:
+            self.x, self.y, self.yaw = self.lanes.lookup(self.lane, self.s)
+
+    def occupied(self, extra: np.ndarray) -> np.ndarray:
+        """Connector occupancy (bool per lane): vehicles on connectors plus `extra` lane ids (the ego)."""
+        occ = np.zeros(len(self.lanes.lanes), dtype=bool)
+        occ[self.lane] = True
+        occ[: self.lanes.n_road_lanes] = False
+        occ[extra] = True
+        return occ
+
+    def step(self, dt: float, rng: np.random.Generator, light_codes: np.ndarray, ego: tuple[float, float, float, float],
+             ego_size: tuple[float, float], ego_lanes: np.ndarray, ped_xy: np.ndarray) -> None:
+        if not self.n:
+            return
+        lanes = self.lanes
+        L = lanes.length
+        lane, s, v = self.lane, self.s, self.v
+        rem = L[lane] - s
+        half = self.length / 2
+        # 1. the vehicle ahead on the path (same lane, next lane, the one after)
+        same = (lane[None, :] == lane[:, None]) & (s[None, :] > s[:, None])
+        d_same = np.where(same, s[None, :] - s[:, None], INF)
+        d1 = np.where(lane[None, :] == self.nxt1[:, None], rem[:, None] + s[None, :], INF)
+        d2 = np.where(lane[None, :] == self.nxt2[:, None], (rem + L[self.nxt1])[:, None] + s[None, :], INF)
+        dist = np.minimum(np.minimum(d_same, d1), d2) - half[:, None] - half[None, :]
+        j = np.argmin(dist, axis=1)
+        gap = dist[np.arange(self.n), j]
+        lead_v = v[j]
+        # 2. the ego and pedestrians in the corridor ahead
+        c, sn = np.cos(self.yaw), np.sin(self.yaw)
+        ex, ey, eyaw, ev = ego
+        rx, ry = ex - self.x, ey - self.y
+        lon, lat = rx * c + ry * sn, -rx * sn + ry * c
+        in_path = (lon > 0) & (lon < self.CORRIDOR) & (np.abs(lat) < self.width / 2 + ego_size[1] / 2 + 0.4)
+        g_ego = np.where(in_path, lon - half - ego_size[0] / 2, INF)
+        closer = g_ego < gap
+        gap = np.where(closer, g_ego, gap)
+        lead_v = np.where(closer, max(ev, 0.0) * np.maximum(np.cos(eyaw - self.yaw), 0.0), lead_v)
+        if len(ped_xy):
+            px = ped_xy[None, :, 0] - self.x[:, None]
+            py = ped_xy[None, :, 1] - self.y[:, None]
+            plon = px * c[:, None] + py * sn[:, None]
+            plat = -px * sn[:, None] + py * c[:, None]
+            hit = (plon > 0) & (plon < 20.0) & (np.abs(plat) < (self.width / 2 + 0.9)[:, None])
+            g_ped = np.min(np.where(hit, plon, INF), axis=1) - half - 0.5
+            closer = g_ped < gap
+            gap = np.where(closer, g_ped, gap)
+            lead_v = np.where(closer, 0.0, lead_v)
+        # 3. stop lines: lights, and junctions whose conflicting connector is occupied
+        occ = self.occupied(ego_lanes)
+        light = lanes.light_of_lane[lane]
+        code = np.where(light >= 0, light_codes[np.maximum(light, 0)], GREEN)
+        g_stop = self.stop_s[lane] - s - half
+        must_stop = (code != GREEN) & ~((code == YELLOW) & (g_stop < v * v / (2 * self.B_COMF)))
+        gate = self.is_gate[self.nxt1] & (lane < lanes.n_road_lanes)
+        blocked = gate & np.any(lanes.conflict[self.nxt1] & occ[None, :], axis=1)
+        stop = (must_stop & (light >= 0) | blocked) & (g_stop > -1.0)
+        closer = stop & (g_stop < gap)
+        gap = np.where(closer, g_stop, gap)
+        lead_v = np.where(closer, 0.0, lead_v)
+        # 4. IDM
+        v0 = np.where(self.is_turn[lane] | (self.is_turn[self.nxt1] & (rem < 12.0)), np.minimum(self.v0, self.TURN_SPEED),
+                      self.v0)
+        s_star = self.S0 + np.maximum(0.0, v * self.T + v * (v - lead_v) / (2 * math.sqrt(self.A_MAX * self.B_COMF)))
+        acc = self.A_MAX * (1 - (v / v0) ** 4 - (s_star / np.maximum(gap, 0.1)) ** 2)
+        acc = np.clip(acc, -self.B_MAX, self.A_MAX)
+        v_new = np.maximum(v + acc * dt, 0.0)
+        s_new = s + 0.5 * (v + v_new) * dt
+        self.v = v_new
+        self.s = s_new
+        # 5. lane changes at lane ends (few per step: a plain loop)
+        for i in np.flatnonzero(s_new > L[lane]).tolist():
+            nxt = int(self.nxt1[i])
+            if self.is_gate[nxt] and np.any(lanes.conflict[nxt] & occ):
+                self.s[i], self.v[i] = L[lane[i]], 0.0  # someone got in first this step: wait at the entry
+                continue
+            self.s[i] -= L[lane[i]]
+            self.lane[i] = nxt
+            self.nxt1[i] = self.nxt2[i]
+            self.nxt2[i] = self._pick(int(self.nxt1[i]), rng)
+            if self.is_gate[nxt]:
+                occ[nxt] = True
+        self._update_pose()

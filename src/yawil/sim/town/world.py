@@ -1,0 +1,309 @@
+"""EmbeddedWorld: the built-in simulator backend (the `World` protocol of yawil.sim.types).
+
+One step: validate the control, move the ego (bicycle model), advance the lights, the vehicles and the
+pedestrians, run the criteria, then assemble the observation (rendering the camera only when the scenario
+asks for it). Everything random comes from generators spawned from the reset seed, one per concern, so the
+same scenario, seed and controls give the same observations bit for bit.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from yawil.sim.criteria import (
+    CollisionCriterion,
+    DistanceDrivenCriterion,
+    GoalCriterion,
+    LaneInvasionCriterion,
+    RedLightCriterion,
+    RouteProgressCriterion,
+    TimeoutCriterion,
+    nocrash_timeout,
+)
+from yawil.sim.town.dynamics import EgoState, VehicleParams, step_bicycle
+from yawil.sim.town.geometry import ActorView
+from yawil.sim.town.lights import STATE_NAMES, TrafficLights
+from yawil.sim.town.pedestrians import HEIGHT, PED_COLORS, SIZE, Pedestrians
+from yawil.sim.town.planner import PlannedRoute, plan_route, random_route
+from yawil.sim.town.regions import GROUND, JUNCTION_BASE, SIDEWALK, box_corners
+from yawil.sim.town.town import Town, get_town, lane_heading_at
+from yawil.sim.town.vehicles import VEHICLE_COLORS, Vehicles
+from yawil.sim.types import (
+    DT,
+    AgentState,
+    Control,
+    Event,
+    EventKind,
+    LightState,
+    Observation,
+    Pose,
+    Privileged,
+    RoadOption,
+    Scenario,
+)
+from yawil.sim.weather import get_weather
+
+COMMAND_LOOKAHEAD = 3  # waypoints ahead of the ego's projection whose option is the command
+PRIVILEGED_RADIUS = 50.0
+EGO_ID = 0
+EGO_COLOR = (0.15, 0.35, 0.75)
+
+
+def _check_scenario(sc: Scenario) -> None:
+    if not isinstance(sc, Scenario):
+        raise ValueError(f"reset needs a Scenario, got {type(sc).__name__}")
+    get_weather(sc.weather)
+    for name in ("vehicles", "pedestrians"):
+        n = getattr(sc, name)
+        if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 0:
+            raise ValueError(f"Scenario.{name} must be a non-negative integer, got {n!r}")
+    if sc.timeout_s is not None and (not isinstance(sc.timeout_s, (int, float)) or not math.isfinite(sc.timeout_s)
+                                     or sc.timeout_s <= 0):
+        raise ValueError(f"Scenario.timeout_s must be a positive number of seconds or None, got {sc.timeout_s!r}")
+    if not isinstance(sc.min_route_length, (int, float)) or not 0 <= sc.min_route_length < 1e5:
+        raise ValueError(f"Scenario.min_route_length must be a non-negative number of metres, got {sc.min_route_length!r}")
+    for name in ("start", "goal"):
+        p = getattr(sc, name)
+        if p is not None and not (isinstance(p, Pose) and all(math.isfinite(v) for v in (p.x, p.y, p.yaw))):
+            raise ValueError(f"Scenario.{name} must be a Pose with finite values or None, got {p!r}")
+
+
+class EmbeddedWorld:
+    """The embedded backend. `render_backend` is handed to the camera renderer ("software" | "opengl")."""
+
+    def __init__(self, render_backend: str = "software", params: VehicleParams | None = None) -> None:
+        self.render_backend = render_backend
+        self.params = params or VehicleParams()
+        self.town: Town | None = None
+        self.scenario: Scenario | None = None
+        self._renderer: Any = None
+        self._renderer_town: str | None = None
+        self.timings: dict[str, float] = {}
+
+    # ---------------------------------------------------------------- episode
+    def reset(self, scenario: Scenario, seed: int) -> Observation:
+        _check_scenario(scenario)
+        if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
+            raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
+        town = get_town(scenario.town)
+        self.town, self.scenario = town, scenario
+        r_route, r_lights, r_veh, r_ped, r_step = (np.random.default_rng(s) for s in np.random.SeedSequence(int(seed)).spawn(5))
+        self._rng = r_step
+        if scenario.start is not None and scenario.goal is not None:
+            planned = plan_route(town.lanes, scenario.start, scenario.goal)
+        else:
+            planned = random_route(town.lanes, r_route, scenario.min_route_length, start=scenario.start, goal=scenario.goal)
+        self.planned: PlannedRoute = planned
+        route = planned.route
+        self.route = route
+        self.ego = EgoState(float(route.xy[0, 0]), float(route.xy[0, 1]), float(route.lane_yaw[0]))
+        self.time, self.frame = 0.0, 0
+        self.lights = TrafficLights(town.lanes)
+        self.lights.reset(r_lights)
+        self.vehicles = Vehicles(town.lanes)
+        self.vehicles.spawn(int(scenario.vehicles), r_veh, keep_out=[(self.ego.x, self.ego.y, 15.0)])
+        self.pedestrians = Pedestrians(town.walkways)
+        self.pedestrians.spawn(int(scenario.pedestrians), r_ped, keep_out=[(self.ego.x, self.ego.y, 4.0)])
+        aps = town.lanes.approaches
+        self.c_collision = CollisionCriterion()
+        self.c_lane = LaneInvasionCriterion()
+        self.c_light = RedLightCriterion(np.array([a.light for a in aps], dtype=np.int64),
+                                         np.array([a.centre_xy for a in aps]), np.array([a.kerb_xy for a in aps]),
+                                         np.array([a.yaw for a in aps]))
+        self.c_progress = RouteProgressCriterion(route.xy)
+        self.c_distance = DistanceDrivenCriterion()
+        self.c_goal = GoalCriterion(route.xy[-1])
+        self.timeout_s = float(scenario.timeout_s) if scenario.timeout_s is not None else nocrash_timeout(route.length)
+        self.c_timeout = TimeoutCriterion(self.timeout_s)
+        self._light_objs = [[LightState(a.light, name, a.stop_xy[0], a.stop_xy[1], a.yaw) for name in STATE_NAMES]
+                            for a in aps]
+        self._road_yaw = np.array([ln.evaluate(np.array([0.0]))[1][0] for ln in town.lanes.lanes])
+        self.c_lane.reset(self._ego_region())
+        self.events: tuple[Event, ...] = ()
+        self.done = False
+        if scenario.camera:
+            self._ensure_renderer()
+        return self._observe(())
+
+    def step(self, control: Control) -> Observation:
+        if self.scenario is None or self.town is None:
+            raise RuntimeError("call reset(scenario, seed) before step()")
+        if not isinstance(control, Control):
+            raise ValueError(f"step needs a Control, got {type(control).__name__}")
+        control.validate()
+        prev = (self.ego.x, self.ego.y)
+        self.ego = step_bicycle(self.ego, control, self.params)
+        self.time = round(self.time + DT, 10)
+        self.frame += 1
+        codes = self.lights.update(self.time)
+        ped_road = self.pedestrians.xy[self.pedestrians.on_road] if self.pedestrians.n else np.zeros((0, 2))
+        self.vehicles.step(DT, self._rng, codes, (self.ego.x, self.ego.y, self.ego.yaw, self.ego.speed),
+                           (self.params.length, self.params.width), self._ego_connectors(), ped_road)
+        self.pedestrians.step(DT, self._rng)
+        events = self._criteria(prev)
+        return self._observe(tuple(events))
+
+    def close(self) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+            self._renderer_town = None
+
+    # ---------------------------------------------------------------- helpers
+    def _ensure_renderer(self) -> None:
+        assert self.town is not None
+        if self._renderer is not None and self._renderer_town == self.town.name:
+            return
+        self.close()
+        from yawil.sim.town.render import CameraRenderer
+
+        self._renderer = CameraRenderer(self.town.geometry, backend=self.render_backend)
+        self._renderer_town = self.town.name
+
+    def ego_box(self) -> tuple[float, float, float, float, float]:
+        return (self.ego.x, self.ego.y, self.ego.yaw, self.params.length, self.params.width)
+
+    def _ego_connectors(self) -> np.ndarray:
+        """Junction connectors the ego's body overlaps (so traffic yields to it)."""
+        assert self.town is not None
+        code = self.town.regions.query_point(self.ego.x, self.ego.y)
+        if code > JUNCTION_BASE:
+            return np.zeros(0, dtype=np.int64)
+        lanes = self.town.lanes
+        conns = np.array(lanes.node_connectors[JUNCTION_BASE - code], dtype=np.int64)
+        m = np.isin(lanes.sample_lane, conns)
+        d = np.hypot(lanes.sample_xy[m, 0] - self.ego.x, lanes.sample_xy[m, 1] - self.ego.y)
+        return np.unique(lanes.sample_lane[m][d < 2.5])
+
+    def _ego_region(self) -> str:
+        assert self.town is not None
+        reg = self.town.regions
+        corners = box_corners(self.ego.x, self.ego.y, self.ego.yaw, self.params.length - 0.4, self.params.width - 0.4)
+        codes = reg.query(corners[:, 0], corners[:, 1])
+        if np.any((codes == GROUND) | (codes == SIDEWALK) | ((codes < 0) & (codes > JUNCTION_BASE))):
+            return "off_road"
+        code = reg.query_point(self.ego.x, self.ego.y)
+        if code <= JUNCTION_BASE:
+            return "junction"
+        if code < 0:
+            return "off_road"
+        lanes = self.town.lanes
+        if code < lanes.n_road_lanes:
+            heading = float(self._road_yaw[code])
+        else:
+            m = lanes.sample_lane == code
+            k = int(np.argmin(np.hypot(lanes.sample_xy[m, 0] - self.ego.x, lanes.sample_xy[m, 1] - self.ego.y)))
+            heading = float(lanes.sample_yaw[m][k])
+        return "lane" if math.cos(self.ego.yaw - heading) >= 0 else "opposite_lane"
+
+    def _criteria(self, prev: tuple[float, float]) -> list[Event]:
+        assert self.town is not None
+        ex, ey, t = self.ego.x, self.ego.y, self.time
+        events: list[Event] = []
+        veh, ped, town = self.vehicles, self.pedestrians, self.town
+        boxes, ids, types = [], [], []
+        if veh.n:
+            near = np.flatnonzero(np.hypot(veh.x - ex, veh.y - ey) < 8.0)
+            if len(near):
+                boxes.append(np.stack([veh.x[near], veh.y[near], veh.yaw[near], veh.length[near], veh.width[near]], 1))
+                ids.append(veh.ids[near])
+                types += ["vehicle"] * len(near)
+        if ped.n:
+            near = np.flatnonzero(np.hypot(ped.xy[:, 0] - ex, ped.xy[:, 1] - ey) < 4.0)
+            if len(near):
+                boxes.append(np.stack([ped.xy[near, 0], ped.xy[near, 1], ped.yaw[near], np.full(len(near), SIZE),
+                                       np.full(len(near), SIZE)], 1))
+                ids.append(ped.ids[near])
+                types += ["pedestrian"] * len(near)
+        st = town.statics
+        near = np.flatnonzero(np.hypot(st[:, 0] - ex, st[:, 1] - ey) < town.static_radius + 3.5)
+        if len(near):
+            boxes.append(st[near])
+            ids.append(near)
+            types += ["static"] * len(near)
+        if boxes:
+            events += self.c_collision.update(t, self.ego_box(), np.concatenate(boxes), np.concatenate(ids), types)
+        else:
+            events += self.c_collision.update(t, self.ego_box(), np.zeros((0, 5)), np.zeros(0, dtype=np.int64), [])
+        events += self.c_lane.update(t, ex, ey, self._ego_region())
+        names = [STATE_NAMES[int(c)] for c in self.lights.codes]
+        events += self.c_light.update(t, prev, (ex, ey), self.ego.yaw, names)
+        self.c_progress.update(ex, ey)
+        self.c_distance.update(prev, (ex, ey))
+        events += self.c_goal.update(t, ex, ey)
+        events += self.c_timeout.update(t, ex, ey)
+        if any(e.kind in (EventKind.GOAL_REACHED, EventKind.TIMEOUT) for e in events):
+            self.done = True
+        return events
+
+    def actor_views(self, radius: float = 120.0) -> list[ActorView]:
+        """Vehicles and pedestrians near the ego, as the renderers want them."""
+        veh, ped = self.vehicles, self.pedestrians
+        out: list[ActorView] = []
+        ex, ey = self.ego.x, self.ego.y
+        for i in np.flatnonzero(np.hypot(veh.x - ex, veh.y - ey) < radius).tolist():
+            out.append(ActorView(int(veh.ids[i]), "vehicle", float(veh.x[i]), float(veh.y[i]), float(veh.yaw[i]),
+                                 float(veh.length[i]), float(veh.width[i]), float(veh.height[i]),
+                                 VEHICLE_COLORS[int(veh.color_index[i])]))
+        for i in np.flatnonzero(np.hypot(ped.xy[:, 0] - ex, ped.xy[:, 1] - ey) < radius).tolist():
+            out.append(ActorView(int(ped.ids[i]), "pedestrian", float(ped.xy[i, 0]), float(ped.xy[i, 1]),
+                                 float(ped.yaw[i]), SIZE, SIZE, HEIGHT, PED_COLORS[int(ped.color_index[i])]))
+        return out
+
+    def ego_view(self) -> ActorView:
+        p = self.params
+        return ActorView(EGO_ID, "vehicle", self.ego.x, self.ego.y, self.ego.yaw, p.length, p.width, p.height, EGO_COLOR)
+
+    def light_states(self) -> dict[int, str]:
+        return self.lights.names()
+
+    def _privileged(self, idx: int) -> Privileged:
+        assert self.town is not None
+        ex, ey = self.ego.x, self.ego.y
+        lights = tuple(self._light_objs[i][int(c)] for i, c in enumerate(self.lights.codes))
+        agents: list[AgentState] = []
+        veh, ped = self.vehicles, self.pedestrians
+        for i in np.flatnonzero(np.hypot(veh.x - ex, veh.y - ey) < PRIVILEGED_RADIUS).tolist():
+            agents.append(AgentState(int(veh.ids[i]), "vehicle", float(veh.x[i]), float(veh.y[i]), float(veh.yaw[i]),
+                                     float(veh.v[i]), float(veh.length[i]), float(veh.width[i])))
+        for i in np.flatnonzero(np.hypot(ped.xy[:, 0] - ex, ped.xy[:, 1] - ey) < PRIVILEGED_RADIUS).tolist():
+            agents.append(AgentState(int(ped.ids[i]), "pedestrian", float(ped.xy[i, 0]), float(ped.xy[i, 1]),
+                                     float(ped.yaw[i]), float(ped.speed[i]), SIZE, SIZE))
+        rx, ry = self.route.xy[idx]
+        if math.hypot(rx - ex, ry - ey) < 3.0:
+            lane_yaw = float(self.route.lane_yaw[idx])
+        else:
+            lane_yaw = lane_heading_at(self.town, ex, ey, self.ego.yaw)
+        return Privileged(lights=lights, agents=tuple(agents), ego_lane_yaw=lane_yaw)
+
+    def _observe(self, events: tuple[Event, ...]) -> Observation:
+        assert self.town is not None and self.scenario is not None
+        self.events = events
+        idx = self.c_progress.index
+        n = len(self.route)
+        command = RoadOption(int(self.route.options[min(idx + COMMAND_LOOKAHEAD, n - 1)]))
+        image = None
+        if self.scenario.camera:
+            self._ensure_renderer()
+            image = self._renderer.render(self.ego.pose, self.actor_views(), self.light_states(), self.scenario.weather,
+                                          self.frame)
+        return Observation(
+            image=image,
+            speed=self.ego.speed,
+            pose=self.ego.pose,
+            route=self.route,
+            route_index=idx,
+            command=command,
+            events=events,
+            time=self.time,
+            frame=self.frame,
+            done=self.done,
+            distance_driven=self.c_distance.total,
+            town=self.town.name,
+            bounds=self.town.geometry.bounds,
+            weather=self.scenario.weather,
+            privileged=self._privileged(idx),
+        )

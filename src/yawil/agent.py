@@ -1,0 +1,203 @@
+"""A trained model as a driver: Observation in, Control out, with exactly the training preprocessing.
+
+    agent = Agent.from_checkpoint("runs/yilratt/best.pt")
+    agent.reset()
+    control = agent.act(obs)       # yawil.sim.types.Control
+    agent.last                     # raw outputs of that step (actions, speed, attention maps) for heat maps
+
+Preprocessing (the same as yawil.train.prepare_batch): image uint8 HWC -> float [0, 1] CHW; speed and
+guidance normalised with the checkpoint's training statistics; guidance computed from the observation's
+route with the checkpoint's GuidanceConfig (the projection hint is kept across frames); the command as a
+branch index (command_index). Post-processing is `PostProcess`, documented in docs/training.md.
+The benchmark needs only `reset()` and `act(obs)`.
+"""
+
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import torch
+
+from yawil.checkpoint import Norm, load_checkpoint, model_from_checkpoint
+from yawil.guidance import CommandNoise, GuidanceConfig, compute_guidance
+from yawil.sim.types import Control, Observation, command_index
+from yawil.train import Runtime, resolve_runtime
+
+
+@dataclass(frozen=True)
+class PostProcess:
+    """From network outputs to a Control.
+
+    Outputs are clipped to the control ranges; a brake below `brake_threshold` counts as no brake (the
+    networks rarely output an exact 0); when braking, throttle is cut (`exclusive_brake`, as CILRS's
+    agent does: the expert never presses both); above `max_speed` (m/s, None = off) throttle is cut.
+    """
+
+    brake_threshold: float = 0.1
+    exclusive_brake: bool = True
+    max_speed: float | None = None
+
+    def __post_init__(self) -> None:
+        if not 0.0 <= self.brake_threshold <= 1.0:
+            raise ValueError(f"brake_threshold={self.brake_threshold!r}: expected a value in [0, 1]")
+        if self.max_speed is not None and not self.max_speed > 0.0:
+            raise ValueError(f"max_speed={self.max_speed!r}: expected None or a speed > 0 m/s")
+
+    def __call__(self, actions: np.ndarray, speed: float) -> Control:
+        a = np.nan_to_num(np.asarray(actions, dtype=np.float64), nan=0.0)
+        steer = float(np.clip(a[0], -1.0, 1.0))
+        throttle = float(np.clip(a[1], 0.0, 1.0))
+        brake = float(np.clip(a[2], 0.0, 1.0))
+        if brake < self.brake_threshold:
+            brake = 0.0
+        if brake > 0.0 and self.exclusive_brake:
+            throttle = 0.0
+        if self.max_speed is not None and speed > self.max_speed:
+            throttle = 0.0
+        return Control(steer=steer, throttle=throttle, brake=brake).validate()
+
+
+@dataclass
+class StepOutput:
+    """What the network said at the last step, before post-processing (numpy, batch dimension removed)."""
+
+    actions: np.ndarray  # (3,) steer, throttle, brake as output
+    speed: float  # predicted speed, m/s
+    attention: list[np.ndarray]  # one (h, w) map per attended layer; empty for models without attention
+    branches: np.ndarray | None  # (4, 3) for branched models
+    guidance: np.ndarray | None  # the guidance vector given (before normalisation)
+    command: int | None  # the branch index given
+    control: Control = field(default_factory=Control)
+
+
+class Agent:
+    """Drives with a trained model. Options for the noise experiment (Table II): yaw_noise_deg,
+    command_noise_p, seed (the noise is drawn from a numpy Generator seeded with it)."""
+
+    def __init__(
+        self,
+        model: torch.nn.Module,
+        norm: Norm,
+        guidance_config: GuidanceConfig,
+        *,
+        device: str = "cpu",
+        precision: str = "auto",
+        channels_last: str = "auto",
+        post: PostProcess | None = None,
+        yaw_noise_deg: float = 0.0,
+        command_noise_p: float = 0.0,
+        seed: int = 0,
+    ) -> None:
+        if yaw_noise_deg < 0.0:
+            raise ValueError(f"yaw_noise_deg={yaw_noise_deg!r}: expected >= 0 degrees")
+        self.runtime: Runtime = resolve_runtime(device, precision, channels_last)
+        self.model = model.to(self.runtime.device).eval()
+        if self.runtime.channels_last:
+            self.model.to(memory_format=torch.channels_last)  # type: ignore[call-arg]
+        self.norm = norm
+        self.guidance_config = guidance_config
+        self.kind: str | None = getattr(model, "guidance", None)
+        self.uses_command = bool(getattr(model, "uses_command", False))
+        if self.kind is not None and len(norm.guidance_mean) != getattr(model, "guidance_dim", -1):
+            raise ValueError(
+                f"the normalisation has {len(norm.guidance_mean)} guidance values, "
+                f"the model expects {getattr(model, 'guidance_dim', '?')}"
+            )
+        self.post = post or PostProcess()
+        self.yaw_noise_deg = float(yaw_noise_deg)
+        self.command_noise_p = float(command_noise_p)
+        self.seed = int(seed)
+        self._rng = np.random.default_rng(self.seed)
+        self._command_noise = CommandNoise(self.command_noise_p, self._rng) if self.command_noise_p > 0 else None
+        self._hint: int | None = None
+        self.last: StepOutput | None = None
+        self.checkpoint_path: str | None = None
+
+    @classmethod
+    def from_checkpoint(cls, path: str | os.PathLike[str], device: str = "cpu", **options: Any) -> Agent:
+        """Rebuild model, normalisation and guidance config from a yawil checkpoint (best.pt or last.pt)."""
+        ckpt = load_checkpoint(path, map_location="cpu")
+        model = model_from_checkpoint(ckpt)
+        config = GuidanceConfig.from_dict(ckpt["guidance_config"])
+        agent = cls(model, Norm.from_dict(ckpt["norm"]), config, device=device, **options)
+        agent.checkpoint_path = str(path)
+        return agent
+
+    @property
+    def name(self) -> str:
+        return str(getattr(self.model, "name", type(self.model).__name__))
+
+    def reset(self, seed: int | None = None) -> None:
+        """Start an episode: forget the route projection and any command-noise burst.
+
+        The noise stream carries on across episodes unless `seed` restarts it.
+        """
+        self._hint = None
+        self.last = None
+        if seed is not None:
+            self.seed = int(seed)
+            self._rng = np.random.default_rng(self.seed)
+            if self._command_noise is not None:
+                self._command_noise = CommandNoise(self.command_noise_p, self._rng)
+        if self._command_noise is not None:
+            self._command_noise.reset()
+
+    def inputs(self, obs: Observation) -> tuple[dict[str, torch.Tensor | None], np.ndarray | None, int | None]:
+        """The network inputs of one observation (batch of 1), plus the raw guidance and command index."""
+        if obs.image is None:
+            raise ValueError("observation has no camera image; the scenario must have camera=True for a learned agent")
+        img = np.asarray(obs.image)
+        if img.ndim != 3 or img.shape[2] != 3 or img.dtype != np.uint8:
+            raise ValueError(f"observation image: expected uint8 (H, W, 3), got {img.dtype} {img.shape}")
+        dev = self.runtime.device
+        image = torch.from_numpy(np.ascontiguousarray(img)).to(dev).permute(2, 0, 1)[None].float().div_(255.0)
+        if self.runtime.channels_last:
+            image = image.contiguous(memory_format=torch.channels_last)
+        speed = self.norm.speed(torch.tensor([[float(obs.speed)]], dtype=torch.float32, device=dev))
+        guidance_raw: np.ndarray | None = None
+        guidance: torch.Tensor | None = None
+        if self.kind is not None:
+            g, self._hint = compute_guidance(
+                obs.route.xy,
+                obs.route.lane_yaw,
+                (obs.pose.x, obs.pose.y),
+                obs.pose.yaw,
+                obs.bounds,
+                self.guidance_config,
+                hint_index=self._hint,
+                yaw_noise_deg=self.yaw_noise_deg,
+                rng=self._rng if self.yaw_noise_deg > 0 else None,
+            )
+            guidance_raw = np.asarray(g.get(self.kind), dtype=np.float32)
+            guidance = self.norm.guidance(torch.from_numpy(guidance_raw.copy()).to(dev)[None])
+        command_idx: int | None = None
+        command: torch.Tensor | None = None
+        if self.uses_command:
+            option = int(obs.command)
+            if self._command_noise is not None:
+                option = self._command_noise(option)
+            command_idx = command_index(option)
+            command = torch.tensor([command_idx], dtype=torch.int64, device=dev)
+        return {"image": image, "speed": speed, "guidance": guidance, "command": command}, guidance_raw, command_idx
+
+    @torch.inference_mode()
+    def act(self, obs: Observation) -> Control:
+        x, guidance_raw, command_idx = self.inputs(obs)
+        with self.runtime.autocast():
+            out = self.model(x["image"], x["speed"], guidance=x["guidance"], command=x["command"])
+        actions = out.actions[0].float().cpu().numpy()
+        speed = float(self.norm.speed_inverse(out.speed[0, 0].float()).cpu())
+        control = self.post(actions, float(obs.speed))
+        self.last = StepOutput(
+            actions=actions,
+            speed=speed,
+            attention=[a[0].float().cpu().numpy() for a in out.attention],
+            branches=None if out.branches is None else out.branches[0].float().cpu().numpy(),
+            guidance=guidance_raw,
+            command=command_idx,
+            control=control,
+        )
+        return control

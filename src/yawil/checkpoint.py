@@ -1,0 +1,163 @@
+"""Training checkpoints: what a trained model needs to drive again, and to resume training exactly.
+
+A checkpoint is a plain dict saved with `torch.save` (written to a temporary file, then renamed, so an
+interrupted save never destroys the previous one). Its keys are in `REQUIRED_KEYS`; the normalisation
+statistics and the guidance configuration travel with the weights, so that `yawil.agent` rebuilds the
+exact training preprocessing without the dataset.
+"""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+FORMAT = "yawil-checkpoint"
+FORMAT_VERSION = 1
+
+REQUIRED_KEYS: tuple[str, ...] = (
+    "format",
+    "format_version",
+    "yawil_version",
+    "model_name",
+    "model_config",
+    "state_dict",
+    "norm",
+    "guidance_config",
+    "guidance_kind",
+    "train_config",
+    "epoch",
+    "step",
+    "metrics",
+)
+# Present in checkpoints written by the trainer (needed by --resume only).
+RESUME_KEYS: tuple[str, ...] = ("optimizer", "scheduler", "rng", "position")
+
+
+@dataclass(frozen=True)
+class Norm:
+    """Mean and standard deviation of the measurement inputs over the training split.
+
+    Components with (near) zero spread keep std 1 so that a constant input (the first yaw of the
+    route-referenced guidance is always 0) is centred, never divided by zero.
+    """
+
+    speed_mean: float
+    speed_std: float
+    guidance_mean: tuple[float, ...] = ()
+    guidance_std: tuple[float, ...] = ()
+
+    @staticmethod
+    def from_arrays(speed: np.ndarray, guidance: np.ndarray | None) -> Norm:
+        speed = np.asarray(speed, dtype=np.float64).reshape(-1)
+        if speed.size == 0:
+            raise ValueError("cannot compute normalisation statistics from an empty training split")
+        g_mean: tuple[float, ...] = ()
+        g_std: tuple[float, ...] = ()
+        if guidance is not None:
+            g = np.asarray(guidance, dtype=np.float64)
+            g = g.reshape(g.shape[0], -1)
+            g_mean = tuple(float(v) for v in g.mean(axis=0))
+            g_std = tuple(float(v) for v in _safe_std(g.std(axis=0)))
+        return Norm(
+            speed_mean=float(speed.mean()),
+            speed_std=float(_safe_std(np.array([speed.std()]))[0]),
+            guidance_mean=g_mean,
+            guidance_std=g_std,
+        )
+
+    @staticmethod
+    def from_dict(d: dict[str, Any]) -> Norm:
+        try:
+            return Norm(
+                speed_mean=float(d["speed_mean"]),
+                speed_std=float(d["speed_std"]),
+                guidance_mean=tuple(float(v) for v in d.get("guidance_mean", ())),
+                guidance_std=tuple(float(v) for v in d.get("guidance_std", ())),
+            )
+        except KeyError as err:
+            raise ValueError(f"checkpoint norm is missing the key {err.args[0]!r}") from None
+
+    def to_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["guidance_mean"] = list(self.guidance_mean)
+        d["guidance_std"] = list(self.guidance_std)
+        return d
+
+    def speed(self, speed: torch.Tensor) -> torch.Tensor:
+        return (speed - self.speed_mean) / self.speed_std
+
+    def speed_inverse(self, speed_n: torch.Tensor) -> torch.Tensor:
+        return speed_n * self.speed_std + self.speed_mean
+
+    def guidance(self, guidance: torch.Tensor) -> torch.Tensor:
+        if guidance.shape[-1] != len(self.guidance_mean):
+            raise ValueError(
+                f"guidance has {guidance.shape[-1]} components, the normalisation has {len(self.guidance_mean)}"
+            )
+        mean = torch.tensor(self.guidance_mean, dtype=guidance.dtype, device=guidance.device)
+        std = torch.tensor(self.guidance_std, dtype=guidance.dtype, device=guidance.device)
+        return (guidance - mean) / std
+
+
+def _safe_std(std: np.ndarray, floor: float = 1e-6) -> np.ndarray:
+    return np.where(std < floor, 1.0, std)
+
+
+def save_checkpoint(ckpt: dict[str, Any], path: str | os.PathLike[str]) -> Path:
+    """Save atomically: a temporary file in the same folder, then a rename."""
+    missing = [k for k in REQUIRED_KEYS if k not in ckpt]
+    if missing:
+        raise ValueError(f"refusing to save a checkpoint without {missing}")
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            torch.save(ckpt, f)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def load_checkpoint(path: str | os.PathLike[str], map_location: str | torch.device = "cpu") -> dict[str, Any]:
+    """Load and validate a yawil checkpoint, with an error that names the file and what is wrong."""
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"checkpoint {path} does not exist")
+    try:
+        # Our checkpoints hold numpy RNG states and plain containers: not weights-only material.
+        ckpt = torch.load(path, map_location=map_location, weights_only=False)
+    except Exception as err:  # torch raises many kinds for a bad file
+        raise ValueError(f"{path} is not a readable torch checkpoint: {err}") from err
+    if not isinstance(ckpt, dict) or ckpt.get("format") != FORMAT:
+        raise ValueError(f"{path} is not a yawil checkpoint (no 'format': {FORMAT!r} entry)")
+    if int(ckpt.get("format_version", -1)) > FORMAT_VERSION:
+        raise ValueError(
+            f"{path} has checkpoint format version {ckpt.get('format_version')}, this yawil reads <= {FORMAT_VERSION}"
+        )
+    missing = [k for k in REQUIRED_KEYS if k not in ckpt]
+    if missing:
+        raise ValueError(f"{path} is a yawil checkpoint but lacks the key(s) {missing}")
+    Norm.from_dict(ckpt["norm"])  # validates the nested keys
+    return ckpt
+
+
+def model_from_checkpoint(ckpt: dict[str, Any]) -> torch.nn.Module:
+    """Rebuild the network of a loaded checkpoint and load its weights (no ImageNet file needed)."""
+    from yawil import models
+
+    config = dict(ckpt["model_config"])
+    config.pop("pretrained", None)  # the weights come from the checkpoint itself
+    model = models.create(ckpt["model_name"], **config)
+    model.load_state_dict(ckpt["state_dict"])
+    return model

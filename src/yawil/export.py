@@ -1,0 +1,169 @@
+"""`yawil export CHECKPOINT --onnx out.onnx [--check]`: a trained model as an ONNX graph.
+
+Inputs (dynamic batch): `image` float32 [B, 3, H, W] in [0, 1]; `speed` float32 [B, 1] normalised; then
+`guidance` float32 [B, D] normalised (guided models) or `command` int64 [B] branch index (CIL, CILRS).
+Outputs: `actions` [B, 3], `speed` [B, 1] (normalised), and `attention_i` [B, h, w] for YILRatt.
+The checkpoint's normalisation and guidance config are stored in the model's metadata (`yawil.norm`,
+`yawil.guidance_config`, `yawil.model`) so that a consumer can reproduce the agent's preprocessing.
+
+Export uses torch's TorchScript-based exporter (`dynamo=False`): the torch.export one needs the
+`onnxscript` package, which the project does not depend on. Only argparse is imported at module level.
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Any
+
+OPSET = 17
+
+
+def add_parser(subparsers: Any) -> argparse.ArgumentParser:
+    p: argparse.ArgumentParser = subparsers.add_parser(
+        "export", help="export a checkpoint to ONNX", description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )  # fmt: skip
+    p.add_argument("checkpoint", help="a yawil checkpoint (best.pt / last.pt)")
+    p.add_argument("--onnx", required=True, metavar="OUT", help="ONNX file to write")
+    p.add_argument("--opset", type=int, default=OPSET, help=f"ONNX opset (>= 17, default {OPSET})")
+    p.add_argument("--check", action="store_true", help="compare onnxruntime with torch on a random batch")
+    p.add_argument("--batch", type=int, default=4, help="batch size of the --check comparison (default 4)")
+    p.add_argument("--tolerance", type=float, default=1e-4, help="max abs difference --check accepts (1e-4)")
+    return p
+
+
+def input_names(model: Any) -> list[str]:
+    names = ["image", "speed"]
+    if getattr(model, "guidance", None) is not None:
+        names.append("guidance")
+    if getattr(model, "uses_command", False):
+        names.append("command")
+    return names
+
+
+def example_inputs(model: Any, batch: int, seed: int = 0, image_size: tuple[int, int] = (88, 200)) -> dict[str, Any]:
+    """A random batch of valid inputs (seeded), for tracing and for the agreement check."""
+    import torch
+
+    g = torch.Generator().manual_seed(seed)
+    x: dict[str, Any] = {
+        "image": torch.rand(batch, 3, *image_size, generator=g),
+        "speed": torch.randn(batch, 1, generator=g),
+    }
+    if getattr(model, "guidance", None) is not None:
+        x["guidance"] = torch.randn(batch, int(model.guidance_dim), generator=g)
+    if getattr(model, "uses_command", False):
+        x["command"] = torch.randint(0, 4, (batch,), generator=g, dtype=torch.int64)
+    return x
+
+
+def _image_size(model: Any) -> tuple[int, int]:
+    size = getattr(model, "config", {}).get("image_size")
+    return (int(size[0]), int(size[1])) if size else (88, 200)
+
+
+def _wrap(model: Any, names: list[str]) -> Any:
+    """Positional inputs and a flat tuple of outputs, as the ONNX exporter wants."""
+    import torch
+
+    class Flat(torch.nn.Module):
+        def __init__(self) -> None:
+            super().__init__()
+            self.model = model
+
+        def forward(self, *args: torch.Tensor) -> tuple[torch.Tensor, ...]:
+            kw = dict(zip(names, args, strict=True))
+            out = self.model(kw["image"], kw["speed"], guidance=kw.get("guidance"), command=kw.get("command"))
+            return (out.actions, out.speed, *out.attention)
+
+    return Flat().eval()
+
+
+def export_onnx(checkpoint: str | Path, onnx_path: str | Path, opset: int = OPSET) -> Path:
+    """Write the ONNX file atomically (temporary file, then rename) and return its path."""
+    import json
+    import os
+    import tempfile
+    import warnings
+
+    import onnx
+    import torch
+
+    from yawil.checkpoint import load_checkpoint, model_from_checkpoint
+
+    if opset < 17:
+        raise ValueError(f"--opset {opset}: expected >= 17")
+    ckpt = load_checkpoint(checkpoint)
+    model = model_from_checkpoint(ckpt).eval()
+    names = input_names(model)
+    example = example_inputs(model, 2, image_size=_image_size(model))
+    with torch.no_grad():
+        out = model(example["image"], example["speed"], guidance=example.get("guidance"), command=example.get("command"))
+    n_att = len(out.attention)
+    outputs = ["actions", "speed", *[f"attention_{i}" for i in range(n_att)]]
+    dynamic = {name: {0: "batch"} for name in names + outputs}
+    path = Path(onnx_path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    os.close(fd)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", DeprecationWarning)  # the TorchScript exporter is deprecated, not gone
+            torch.onnx.export(
+                _wrap(model, names), tuple(example[n] for n in names), tmp,
+                input_names=names, output_names=outputs, dynamic_axes=dynamic, opset_version=opset, dynamo=False,
+            )  # fmt: skip
+        proto = onnx.load(tmp)
+        meta = {
+            "yawil.model": json.dumps({"name": ckpt["model_name"], "config": ckpt["model_config"]}, default=str),
+            "yawil.norm": json.dumps(ckpt["norm"]),
+            "yawil.guidance_config": json.dumps(ckpt["guidance_config"]),
+            "yawil.guidance_kind": json.dumps(ckpt["guidance_kind"]),
+        }
+        for key, value in meta.items():
+            entry = proto.metadata_props.add()
+            entry.key, entry.value = key, value
+        onnx.checker.check_model(proto)
+        onnx.save(proto, tmp)
+        os.replace(tmp, path)
+    except BaseException:
+        Path(tmp).unlink(missing_ok=True)
+        raise
+    return path
+
+
+def check_onnx(checkpoint: str | Path, onnx_path: str | Path, batch: int = 4, seed: int = 0) -> float:
+    """Max absolute difference between onnxruntime and torch (fp32) over every output, on a random batch."""
+    import numpy as np
+    import onnxruntime as ort
+    import torch
+
+    from yawil.checkpoint import load_checkpoint, model_from_checkpoint
+
+    model = model_from_checkpoint(load_checkpoint(checkpoint)).eval()
+    names = input_names(model)
+    x = example_inputs(model, batch, seed=seed, image_size=_image_size(model))
+    with torch.no_grad():
+        ref = _wrap(model, names)(*(x[n] for n in names))
+    session = ort.InferenceSession(str(onnx_path), providers=["CPUExecutionProvider"])
+    got = session.run(None, {n: x[n].numpy() for n in names})
+    if len(got) != len(ref):
+        raise ValueError(f"{onnx_path} has {len(got)} outputs, the torch model gives {len(ref)}")
+    return max(float(np.max(np.abs(g - r.numpy()))) for g, r in zip(got, ref, strict=True))
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        path = export_onnx(args.checkpoint, args.onnx, args.opset)
+    except (ValueError, FileNotFoundError) as err:
+        print(f"yawil export: {err}", file=sys.stderr)
+        return 2
+    print(f"wrote {path}")
+    if args.check:
+        diff = check_onnx(args.checkpoint, path, batch=args.batch)
+        ok = diff <= args.tolerance
+        print(f"onnxruntime vs torch: max abs difference {diff:.3g} ({'ok' if ok else 'FAIL'}, tolerance {args.tolerance:g})")
+        return 0 if ok else 1
+    return 0

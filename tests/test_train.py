@@ -1,0 +1,260 @@
+"""Training: paper defaults, config precedence, the loop end to end, resume equivalence, branched loss,
+normalisation, checkpoints, augmentation."""
+
+from __future__ import annotations
+
+import argparse
+import csv
+from dataclasses import fields
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import torch
+import yaml
+
+from yawil import models
+from yawil.augment import AugmentConfig, augment_batch, blur
+from yawil.checkpoint import REQUIRED_KEYS, Norm, load_checkpoint, save_checkpoint
+from yawil.train import TrainConfig, epoch_batches, predicted_actions, train
+from yawil.train_cli import _OPTIONS, add_parser, build_config
+
+torch.set_num_threads(2)
+K = 4
+
+
+class MemoryDataset(torch.utils.data.Dataset):
+    """Samples shaped as yawil.data.DrivingDataset gives them, learnable: steer follows the image."""
+
+    def __init__(self, n: int, seed: int, episode0: int = 0) -> None:
+        rng = np.random.default_rng(seed)
+        self.steer = rng.uniform(-0.5, 0.5, n).astype(np.float32)
+        self.speed = rng.uniform(0, 8, n).astype(np.float32)
+        self.command = rng.integers(0, 4, n).astype(np.int64)
+        self.guidance = {
+            "yaw": rng.normal(0, 0.3, (n, K)).astype(np.float32),
+            "xy": rng.uniform(-1, 1, (n, 2 * K)).astype(np.float32),
+            "sim_yaw": rng.normal(0, 0.3, (n, K)).astype(np.float32),
+        }
+        self.guidance["yaw"][:, 0] = 0.0  # as route-referenced yaw guidance always is
+        base = rng.integers(0, 60, (n, 3, 88, 200)).astype(np.int16)
+        shade = ((self.steer + 0.5) * 190).astype(np.int16)[:, None, None, None]
+        self.images = np.clip(base + shade, 0, 255).astype(np.uint8)
+        self.episode0 = episode0
+        self.guidance_config = {"spacing": 2.0, "count": K, "reference": "route"}
+
+    def __len__(self) -> int:
+        return len(self.steer)
+
+    def __getitem__(self, i: int) -> dict[str, Any]:
+        throttle = 0.5 + 0.1 * float(self.steer[i])
+        return {
+            "image": self.images[i],
+            "speed": self.speed[i : i + 1],
+            "action": np.array([self.steer[i], throttle, 0.0], dtype=np.float32),
+            "command": self.command[i],
+            "guidance_yaw": self.guidance["yaw"][i],
+            "guidance_xy": self.guidance["xy"][i],
+            "guidance_sim_yaw": self.guidance["sim_yaw"][i],
+            "episode": self.episode0 + i // 8,
+            "frame": i % 8,
+        }
+
+    def labels(self, name: str) -> np.ndarray:
+        if name == "speed":
+            return self.speed
+        return self.guidance[name.removeprefix("guidance_")]
+
+
+def splits(n_train: int = 48, n_val: int = 16) -> tuple[Any, Any, dict[str, Any]]:
+    tr = MemoryDataset(n_train, seed=1)
+    return tr, MemoryDataset(n_val, seed=2, episode0=100), tr.guidance_config
+
+
+def small(tmp_path: Path, name: str, **kw: Any) -> TrainConfig:
+    base: dict[str, Any] = dict(
+        model="cil", out=str(tmp_path / name), epochs=2, batch_size=16, lr=1e-3, progress=False,
+        precision="fp32", model_args={"dropout": 0.0},
+    )  # fmt: skip
+    base.update(kw)
+    return TrainConfig(**base)
+
+
+# ------------------------------------------------------------------------------------------------ config
+def test_defaults_are_the_papers() -> None:
+    cfg = TrainConfig()
+    assert (cfg.batch_size, cfg.lr, cfg.lr_step_epochs, cfg.lr_gamma, cfg.epochs) == (512, 1e-3, 10, 0.5, 100)
+    assert (cfg.alpha, cfg.beta, cfg.loss, cfg.model) == (1.0, 0.1, "l1", "yilratt")
+    assert cfg.augment.enabled
+
+
+def test_every_setting_has_a_command_line_option() -> None:
+    covered = {dest for _, dest, _, _ in _OPTIONS} | {"model", "data", "out", "model_args", "augment", "progress"}
+    assert {f.name for f in fields(TrainConfig)} == covered
+
+
+def _parse(argv: list[str]) -> argparse.Namespace:
+    parser = argparse.ArgumentParser()
+    sub = parser.add_subparsers()
+    add_parser(sub)
+    return parser.parse_args(["train", *argv])
+
+
+def test_yaml_then_command_line(tmp_path: Path) -> None:
+    f = tmp_path / "c.yaml"
+    f.write_text(yaml.safe_dump({"lr": 0.01, "epochs": 7, "augment": {"blur_p": 0.9}, "model": "cilrs"}))
+    cfg = build_config(_parse(["--config", str(f), "--epochs", "3", "--augment", "noise_p=0.0", "--data", "d1"]))
+    assert (cfg.lr, cfg.epochs, cfg.model, cfg.data) == (0.01, 3, "cilrs", ["d1"])
+    assert (cfg.augment.blur_p, cfg.augment.noise_p, cfg.augment.contrast_p) == (0.9, 0.0, 0.5)
+    cfg = build_config(_parse(["--no-augment", "--model-arg", "dropout=0.2"]))
+    assert not cfg.augment.enabled and cfg.model_args == {"dropout": 0.2}
+
+
+def test_unknown_and_bad_settings_are_named(tmp_path: Path) -> None:
+    f = tmp_path / "c.yaml"
+    f.write_text("lr: 0.01\nlearning_rate: 0.1\n")
+    with pytest.raises(ValueError, match=r"c\.yaml.*learning_rate"):
+        TrainConfig.from_yaml(f)
+    f.write_text("augment: {blurr_p: 0.1}\n")
+    with pytest.raises(ValueError, match="blurr_p"):
+        TrainConfig.from_yaml(f)
+    with pytest.raises(ValueError, match="batch_size=0"):
+        TrainConfig(batch_size=0)
+    with pytest.raises(ValueError, match="loss"):
+        TrainConfig(loss="l3")
+    with pytest.raises(FileNotFoundError, match="nope.yaml"):
+        TrainConfig.from_yaml(tmp_path / "nope.yaml")
+
+
+# --------------------------------------------------------------------------------------------- the loop
+def _weights(path: Path) -> dict[str, torch.Tensor]:
+    return load_checkpoint(path)["state_dict"]
+
+
+def test_train_end_to_end_and_resume_equivalence(tmp_path: Path) -> None:
+    full = train(small(tmp_path, "full"), splits=splits())
+    out = Path(full.out)
+    for name in ("best.pt", "last.pt", "config.yaml", "metrics.csv", "loss.png"):
+        assert (out / name).is_file(), name
+    assert list((out / "tb").glob("events.out.tfevents.*"))
+    rows = list(csv.DictReader((out / "metrics.csv").open()))
+    assert [float(r["epoch"]) for r in rows] == [1.0, 2.0]
+    assert float(rows[1]["train_loss"]) < float(rows[0]["train_loss"])
+    assert {"val_l1_steer", "val_l1_throttle", "val_l1_brake", "val_l1_speed", "lr", "time"} <= set(rows[0])
+    assert yaml.safe_load((out / "config.yaml").read_text())["batch_size"] == 16
+    ckpt = load_checkpoint(out / "last.pt")
+    assert set(REQUIRED_KEYS) <= set(ckpt) and ckpt["epoch"] == 2 and ckpt["step"] == 6
+    assert ckpt["guidance_config"] == {"spacing": 2.0, "count": K, "reference": "route"}
+
+    part = train(small(tmp_path, "part", epochs=1), splits=splits())
+    assert part.epochs_done == 1
+    resumed = train(small(tmp_path, "part", epochs=2), resume=True, splits=splits())
+    assert resumed.epochs_done == 2 and resumed.steps == full.steps
+    a, b = _weights(out / "last.pt"), _weights(Path(resumed.out) / "last.pt")
+    for key in a:
+        torch.testing.assert_close(a[key], b[key], rtol=0, atol=1e-6, msg=key)
+    assert load_checkpoint(Path(resumed.out) / "last.pt")["metrics"][1]["train_loss"] == pytest.approx(
+        full.metrics[1]["train_loss"], abs=1e-6
+    )
+
+
+def test_budget_stop_mid_epoch_then_resume(tmp_path: Path) -> None:
+    stopped = train(small(tmp_path, "b", epochs=1, max_steps=2), splits=splits())
+    assert (stopped.stopped_by, stopped.steps, stopped.epochs_done) == ("max_steps", 2, 0)
+    assert (Path(stopped.out) / "best.pt").is_file()  # a partial epoch still leaves a usable model
+    resumed = train(small(tmp_path, "b", epochs=1), resume=True, splits=splits())
+    assert (resumed.steps, resumed.epochs_done) == (3, 1)
+    with pytest.raises(ValueError, match="'lr'"):
+        train(small(tmp_path, "b", epochs=2, lr=0.5), resume=True, splits=splits())
+    with pytest.raises(FileExistsError, match="--resume"):
+        train(small(tmp_path, "b"), splits=splits())
+
+
+def test_guided_model_gets_dataset_width_and_stored_norm(tmp_path: Path) -> None:
+    tr, va, gc = splits(16, 8)
+    res = train(small(tmp_path, "g", model="yaw-guided", epochs=1, precision="auto"), splits=(tr, va, gc))
+    ckpt = load_checkpoint(Path(res.out) / "best.pt")
+    assert ckpt["guidance_kind"] == "yaw" and ckpt["model_config"]["guidance_dim"] == K
+    norm = Norm.from_dict(ckpt["norm"])
+    assert norm.speed_mean == pytest.approx(float(tr.speed.mean()), rel=1e-6)
+    assert np.allclose(norm.guidance_mean, tr.guidance["yaw"].mean(0), atol=1e-6)
+    assert norm.guidance_std[0] == 1.0  # constant component: centred, not divided by zero
+
+
+def test_branched_loss_uses_the_commands_branch() -> None:
+    model = models.create("cil", seed=0, dropout=0.0)
+    image, speed = torch.rand(4, 3, 88, 200), torch.zeros(4, 1)
+    command = torch.tensor([2, 2, 1, 2])
+    out = model(image, speed, command=command)
+    pred = predicted_actions(model, out, command)
+    assert torch.equal(pred, out.branches[torch.arange(4), command])
+    pred.sum().backward()
+    grads = [sum(float(p.grad.abs().sum()) for p in b.parameters() if p.grad is not None) for b in model.branches]
+    assert grads[1] > 0 and grads[2] > 0 and grads[0] == 0 and grads[3] == 0
+
+
+def test_epoch_order_is_a_seeded_permutation() -> None:
+    a = epoch_batches(50, 16, seed=3, epoch=1)
+    assert a == epoch_batches(50, 16, seed=3, epoch=1) != epoch_batches(50, 16, seed=3, epoch=2)
+    assert sorted(i for b in a for i in b) == list(range(50)) and [len(b) for b in a] == [16, 16, 16, 2]
+
+
+# -------------------------------------------------------------------------------------------- checkpoint
+def test_load_checkpoint_errors(tmp_path: Path) -> None:
+    with pytest.raises(FileNotFoundError, match="missing.pt"):
+        load_checkpoint(tmp_path / "missing.pt")
+    (tmp_path / "junk.pt").write_bytes(b"not a checkpoint")
+    with pytest.raises(ValueError, match="junk.pt"):
+        load_checkpoint(tmp_path / "junk.pt")
+    torch.save({"state_dict": {}}, tmp_path / "plain.pt")
+    with pytest.raises(ValueError, match="not a yawil checkpoint"):
+        load_checkpoint(tmp_path / "plain.pt")
+    torch.save({"format": "yawil-checkpoint", "format_version": 1}, tmp_path / "partial.pt")
+    with pytest.raises(ValueError, match="model_name"):
+        load_checkpoint(tmp_path / "partial.pt")
+    with pytest.raises(ValueError, match="without"):
+        save_checkpoint({"format": "yawil-checkpoint"}, tmp_path / "x.pt")
+    assert not (tmp_path / "x.pt").exists()
+
+
+# ------------------------------------------------------------------------------------------ augmentation
+def test_augmentation_per_sample_and_seeded() -> None:
+    images = torch.rand(64, 3, 88, 200)
+    cfg = AugmentConfig()
+    a = augment_batch(images, cfg, torch.Generator().manual_seed(5))
+    b = augment_batch(images, cfg, torch.Generator().manual_seed(5))
+    c = augment_batch(images, cfg, torch.Generator().manual_seed(6))
+    assert torch.equal(a, b) and not torch.equal(a, c)
+    assert a.min() >= 0 and a.max() <= 1 and a.shape == images.shape
+    changed = (a - images).abs().flatten(1).mean(1)
+    assert (changed > 0).sum() > 32  # most samples touched...
+    assert changed.std() > 0.005  # ...by different amounts
+    assert torch.equal(augment_batch(images, AugmentConfig(enabled=False), torch.Generator()), images)
+    with pytest.raises(ValueError, match="blur_p"):
+        AugmentConfig(blur_p=1.5)
+
+
+def test_augmentation_matches_torchvision_v2() -> None:
+    from torchvision.transforms.v2 import functional as TF
+
+    img = torch.rand(1, 3, 40, 60)
+    only = dict(brightness_p=0.0, contrast_p=0.0, blur_p=0.0, noise_p=0.0, dropout_p=0.0)
+    for op, fn in (
+        ("brightness", lambda x, f: TF.adjust_brightness(x, f)),
+        ("contrast", lambda x, f: TF.adjust_contrast(x, f)),
+    ):
+        cfg = AugmentConfig(**{**only, f"{op}_p": 1.0})
+        gen = torch.Generator().manual_seed(0)
+        out = augment_batch(img, cfg, gen)
+        # replay the draws to learn the factor used
+        g2 = torch.Generator().manual_seed(0)
+        draws = [torch.rand(1, generator=g2) for _ in range(4 if op == "contrast" else 2)]
+        factor = 1 - 0.4 + 0.8 * float(draws[-1])
+        torch.testing.assert_close(out, fn(img, factor), atol=1e-6, rtol=0)
+    sigmas = torch.tensor([0.7, 1.3])
+    two = torch.rand(2, 3, 40, 60)
+    got = blur(two, sigmas, 5)
+    for i in range(2):
+        ref = TF.gaussian_blur(two[i : i + 1], [5, 5], [float(sigmas[i])] * 2)
+        torch.testing.assert_close(got[i : i + 1], ref, atol=1e-5, rtol=0)

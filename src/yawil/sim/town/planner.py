@@ -107,40 +107,54 @@ def sample_route(lanes: LaneGraph, seq: list[int], s_start: float, s_goal: float
     return PlannedRoute(route, lane_ids, s_local, tuple(seq))
 
 
-def random_route(lanes: LaneGraph, rng: np.random.Generator, min_length: float = 0.0, max_tries: int = 2000,
+def _between(lanes: LaneGraph) -> np.ndarray:
+    """D[a, b]: metres from the end of lane a to the start of lane b by the shortest lane sequence."""
+    d = getattr(lanes, "_between", None)
+    if d is None:
+        import networkx as nx
+
+        sp = nx.floyd_warshall_numpy(_graph(lanes), nodelist=range(len(lanes.lanes)), weight="weight")
+        d = np.full_like(sp, np.inf)
+        for a, ln in enumerate(lanes.lanes):
+            d[a] = np.min(sp[ln.successors], axis=0)
+        lanes._between = d  # type: ignore[attr-defined]
+    return d
+
+
+def random_route(lanes: LaneGraph, rng: np.random.Generator, min_length: float = 0.0, max_tries: int = 5000,
                  start: Pose | None = None, goal: Pose | None = None) -> PlannedRoute:
     """A route between random road-lane points (or the given start/goal), redrawn until min_length long."""
     import networkx as nx
 
-    g = _graph(lanes)
+    between = _between(lanes)
     fixed_start = lanes.snap(start.x, start.y, start.yaw)[:2] if start is not None else None
     fixed_goal = lanes.snap(goal.x, goal.y, goal.yaw)[:2] if goal is not None else None
-    best: PlannedRoute | None = None
+    n = lanes.n_road_lanes
+    longest = float(np.max(lanes.length[:n, None] + between[:n, :n] + lanes.length[None, :n]))
+    if longest < min_length:
+        raise ValueError(f"no route of at least {min_length:.0f} m exists on town {lanes.layout.name!r} "
+                         f"(longest about {longest:.0f} m)")
     for _ in range(max_tries):
-        ls, lg = (int(v) for v in rng.integers(0, lanes.n_road_lanes, size=2))
+        ls, lg = (int(v) for v in rng.integers(0, n, size=2))
         ss = float(rng.uniform(0.1, 0.6) * lanes.length[ls])
         sg = float(rng.uniform(0.4, 0.9) * lanes.length[lg])
         if fixed_start is not None:
             ls, ss = fixed_start
         if fixed_goal is not None:
             lg, sg = fixed_goal
-        if ls == lg and sg > ss + 1.0:
+        direct = ls == lg and sg > ss + 1.0
+        length = sg - ss if direct else lanes.length[ls] - ss + between[ls, lg] + sg
+        if not np.isfinite(length) or length < min_length:
+            continue
+        if direct:
             seq = [ls]
         else:
-            try:
-                _, path = nx.multi_source_dijkstra(g, set(lanes.lanes[ls].successors), target=lg, weight="weight")
-            except nx.NetworkXNoPath:
-                continue
+            _, path = nx.multi_source_dijkstra(_graph(lanes), set(lanes.lanes[ls].successors), target=lg, weight="weight")
             seq = [ls, *path]
-        planned = sample_route(lanes, seq, ss, sg)
-        if planned.route.length >= min_length:
-            return planned
-        if best is None or planned.route.length > best.route.length:
-            best = planned
-    longest = 0.0 if best is None else best.route.length
+        return sample_route(lanes, seq, ss, sg)
     raise ValueError(
         f"no route of at least {min_length:.0f} m found on town {lanes.layout.name!r} in {max_tries} draws "
-        f"(longest {longest:.0f} m)"
+        f"(from the given start/goal, if any)"
     )
 
 
@@ -184,4 +198,14 @@ def turn_tasks(lanes: LaneGraph, lead_in: float = 25.0, lead_out: float = 25.0) 
         tasks.append(TurnTask(f"{kind}-{key}-{direction}-from-{lanes.layout.nodes[entry.start_node][0]}", kind,
                               ln.option, direction, Pose(float(p0[0]), float(p0[1]), float(y0)),
                               Pose(float(p1[0]), float(p1[1]), float(y1))))
+    return tasks
+
+
+def square_tasks() -> list[TurnTask]:
+    """The square scene's 32 turning tasks: 8 corner, 16 T-junction and 8 crossing turns."""
+    from yawil.sim.town.town import get_town
+
+    tasks = turn_tasks(get_town("square").lanes)
+    if len(tasks) != 32:  # pragma: no cover - guards edits of square.json
+        raise ValueError(f"square.json yields {len(tasks)} turning tasks, expected 32")
     return tasks

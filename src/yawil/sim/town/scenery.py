@@ -151,7 +151,8 @@ def build_geometry(layout: Layout, lanes: LaneGraph) -> TownGeometry:
             c_in, c_out = bisector_point(c, u1, u2, W), bisector_point(c, u1, u2, W + sw)
             geo.sidewalk_polygons += [ccw(np.array([a_in, a_out, c_out, c_in])), ccw(np.array([c_in, c_out, b_out, b_in]))]
             tri = np.array([a_in, c_in, b_in])
-            if abs(np.cross(tri[1] - tri[0], tri[2] - tri[0])) > 0.5:
+            (ax, ay), (bx, by) = tri[1] - tri[0], tri[2] - tri[0]
+            if abs(ax * by - ay * bx) > 0.5:
                 geo.sidewalk_polygons.append(ccw(tri))
     for ap in lanes.approaches:
         geo.markings.append(Marking(np.array([ap.centre_xy, ap.kerb_xy]), WHITE, 0.4, False, "stop"))

@@ -67,13 +67,16 @@ class Vehicles:
         """Place n vehicles on road lanes, clear of each other and of the (x, y, radius) keep-out discs."""
         self._alloc(n)
         lanes = self.lanes
-        weights = lanes.length[: lanes.n_road_lanes] - 12.0
-        weights = np.maximum(weights, 0.0) / np.maximum(weights, 0.0).sum()
+        room = np.maximum(lanes.length[: lanes.n_road_lanes] - 12.0, 0.0)
+        if n > room.sum() / 12.0:
+            raise ValueError(f"{n} vehicles do not fit on town {lanes.layout.name!r} (about {int(room.sum() / 12.0)} "
+                             f"do). Use fewer vehicles.")
+        weights = room / room.sum()
         placed = 0
         tries = 0
         while placed < n:
             tries += 1
-            if tries > 200 * n + 1000:
+            if tries > 100 * n + 1000:
                 raise ValueError(f"cannot place {n} vehicles on town {lanes.layout.name!r} without overlaps; "
                                  f"placed {placed}. Use fewer vehicles.")
             lane = int(rng.choice(lanes.n_road_lanes, p=weights))

@@ -109,6 +109,37 @@ def _safe_std(std: np.ndarray, floor: float = 1e-6) -> np.ndarray:
     return np.where(std < floor, 1.0, std)
 
 
+def make_checkpoint(
+    model: Any,  # a yawil.models.DrivingModel
+    norm: Norm,
+    guidance_config: dict[str, Any],
+    train_config: dict[str, Any] | None = None,
+    epoch: int = 0,
+    step: int = 0,
+    metrics: list[dict[str, float]] | None = None,
+    **extra: Any,
+) -> dict[str, Any]:
+    """The checkpoint dict of a model (weights copied to the CPU); `extra` adds the resume keys."""
+    from yawil import __version__
+
+    return {
+        "format": FORMAT,
+        "format_version": FORMAT_VERSION,
+        "yawil_version": __version__,
+        "model_name": str(model.name),
+        "model_config": dict(model.config),
+        "state_dict": {k: v.detach().cpu().clone() for k, v in model.state_dict().items()},
+        "norm": norm.to_dict(),
+        "guidance_config": dict(guidance_config),
+        "guidance_kind": getattr(model, "guidance", None),
+        "train_config": dict(train_config or {}),
+        "epoch": int(epoch),
+        "step": int(step),
+        "metrics": list(metrics or []),
+        **extra,
+    }
+
+
 def save_checkpoint(ckpt: dict[str, Any], path: str | os.PathLike[str]) -> Path:
     """Save atomically: a temporary file in the same folder, then a rename."""
     missing = [k for k in REQUIRED_KEYS if k not in ckpt]

@@ -2,7 +2,7 @@
 
 Inputs (dynamic batch): `image` float32 [B, 3, H, W] in [0, 1]; `speed` float32 [B, 1] normalised; then
 `guidance` float32 [B, D] normalised (guided models) or `command` int64 [B] branch index (CIL, CILRS).
-Outputs: `actions` [B, 3], `speed` [B, 1] (normalised), and `attention_i` [B, h, w] for YILRatt.
+Outputs: `actions` [B, 3], `pred_speed` [B, 1] (normalised; ONNX forbids reusing the input name), and `attention_i` [B, h, w] for YILRatt.
 The checkpoint's normalisation and guidance config are stored in the model's metadata (`yawil.norm`,
 `yawil.guidance_config`, `yawil.model`) so that a consumer can reproduce the agent's preprocessing.
 
@@ -102,7 +102,7 @@ def export_onnx(checkpoint: str | Path, onnx_path: str | Path, opset: int = OPSE
     with torch.no_grad():
         out = model(example["image"], example["speed"], guidance=example.get("guidance"), command=example.get("command"))
     n_att = len(out.attention)
-    outputs = ["actions", "speed", *[f"attention_{i}" for i in range(n_att)]]
+    outputs = ["actions", "pred_speed", *[f"attention_{i}" for i in range(n_att)]]
     dynamic = {name: {0: "batch"} for name in names + outputs}
     path = Path(onnx_path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -111,6 +111,7 @@ def export_onnx(checkpoint: str | Path, onnx_path: str | Path, opset: int = OPSE
     try:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", DeprecationWarning)  # the TorchScript exporter is deprecated, not gone
+            warnings.simplefilter("ignore", torch.jit.TracerWarning)  # shape checks traced as constants: intended
             torch.onnx.export(
                 _wrap(model, names), tuple(example[n] for n in names), tmp,
                 input_names=names, output_names=outputs, dynamic_axes=dynamic, opset_version=opset, dynamo=False,

@@ -29,9 +29,8 @@ import torch
 import yaml
 from torch import Tensor
 
-from yawil import __version__
 from yawil.augment import AugmentConfig, augment_batch
-from yawil.checkpoint import FORMAT, FORMAT_VERSION, Norm, load_checkpoint, save_checkpoint
+from yawil.checkpoint import Norm, load_checkpoint, make_checkpoint, save_checkpoint
 
 LOSSES = ("l1", "mse", "smooth_l1")
 PRECISIONS = ("auto", "fp32", "bf16", "fp16")
@@ -516,27 +515,15 @@ def train(
     stopped_by = "epochs"
 
     def snapshot() -> dict[str, Any]:
-        return {
-            "format": FORMAT,
-            "format_version": FORMAT_VERSION,
-            "yawil_version": __version__,
-            "model_name": model.name,
-            "model_config": dict(model.config),
-            "state_dict": {k: v.detach().cpu().clone() for k, v in model.state_dict().items()},
-            "norm": norm.to_dict(),
-            "guidance_config": guidance_config,
-            "guidance_kind": kind,
-            "train_config": cfg.to_dict(),
-            "epoch": pos.epoch,
-            "step": pos.step,
-            "metrics": list(metrics),
-            "optimizer": optimizer.state_dict(),
-            "scheduler": scheduler.state_dict(),
-            "scaler": scaler.state_dict(),
-            "rng": rng_states(),
-            "position": asdict(pos),
-            "runtime": {"device": runtime.device.type, "precision": runtime.precision, "channels_last": runtime.channels_last},
-        }
+        return make_checkpoint(
+            model, norm, guidance_config, cfg.to_dict(), pos.epoch, pos.step, metrics,
+            optimizer=optimizer.state_dict(),
+            scheduler=scheduler.state_dict(),
+            scaler=scaler.state_dict(),
+            rng=rng_states(),
+            position=asdict(pos),
+            runtime={"device": runtime.device.type, "precision": runtime.precision, "channels_last": runtime.channels_last},
+        )  # fmt: skip
 
     def end_of_period(partial: bool) -> None:
         """Validate, log, keep best and last. `partial`: a budget stopped the epoch midway."""

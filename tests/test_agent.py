@@ -1,0 +1,140 @@
+"""The driving agent: training preprocessing on Observations, stored normalisation, branches, attention,
+post-processing, noise options."""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytest
+import torch
+
+from yawil import models
+from yawil.agent import Agent, PostProcess
+from yawil.checkpoint import Norm, make_checkpoint, save_checkpoint
+from yawil.guidance import GuidanceConfig, compute_guidance
+from yawil.sim.types import Control, Observation, Pose, RoadOption, Route
+from yawil.train import prepare_batch, resolve_runtime
+
+torch.set_num_threads(2)
+K = 4
+GC = {"spacing": 2.0, "count": K, "reference": "route"}
+
+
+def observation(command: RoadOption = RoadOption.LANEFOLLOW, speed: float = 3.0, seed: int = 0) -> Observation:
+    """The ego 10 m along a straight 100 m route heading east, then a left turn."""
+    straight = np.stack([np.arange(0.0, 60.0), np.zeros(60)], axis=1)
+    turn = np.stack([np.full(40, 59.0), np.arange(1.0, 41.0)], axis=1)
+    xy = np.concatenate([straight, turn])
+    lane_yaw = np.concatenate([np.zeros(60), np.full(40, np.pi / 2)])
+    route = Route(xy=xy, options=np.full(len(xy), int(command), np.int8), lane_yaw=lane_yaw)
+    image = np.random.default_rng(seed).integers(0, 256, (88, 200, 3), dtype=np.uint8)
+    return Observation(
+        image=image, speed=speed, pose=Pose(10.0, 0.3, 0.05), route=route, route_index=10, command=command,
+        events=(), time=0.0, frame=0, done=False, distance_driven=0.0, town="town01",
+        bounds=(-10.0, -10.0, 110.0, 60.0), weather="ClearNoon",
+    )  # fmt: skip
+
+
+def checkpoint(tmp_path: Path, name: str, **cfg: Any) -> tuple[Path, Norm]:
+    model = models.create(name, seed=0, **cfg)
+    dim = model.guidance_dim if model.guidance else 0
+    norm = Norm(2.5, 1.5, tuple(np.linspace(-0.1, 0.1, dim)), tuple(np.linspace(0.5, 1.5, dim)))
+    path = tmp_path / f"{name}.pt"
+    save_checkpoint(make_checkpoint(model, norm, GC, {"model": name}), path)
+    return path, norm
+
+
+def test_guided_agent_uses_training_preprocessing(tmp_path: Path) -> None:
+    path, norm = checkpoint(tmp_path, "yaw-guided", guidance_dim=K, dropout=0.0)
+    agent = Agent.from_checkpoint(path, precision="fp32")
+    agent.reset()
+    obs = observation()
+    x, g_raw, cmd = agent.inputs(obs)
+    assert cmd is None and x["command"] is None and g_raw is not None
+    expected, _ = compute_guidance(
+        obs.route.xy, obs.route.lane_yaw, (10.0, 0.3), 0.05, obs.bounds, GuidanceConfig(**GC)
+    )
+    np.testing.assert_allclose(g_raw, expected.yaw, atol=0)
+    # the same frame as a dataset sample goes through the trainer's preprocessing
+    sample = {
+        "image": torch.from_numpy(obs.image).permute(2, 0, 1)[None],
+        "speed": torch.tensor([[obs.speed]], dtype=torch.float32),
+        "action": torch.zeros(1, 3),
+        "command": torch.zeros(1, dtype=torch.int64),
+        "guidance_yaw": torch.from_numpy(g_raw.copy())[None],
+    }
+    b = prepare_batch(sample, norm, "yaw", False, resolve_runtime("cpu", "fp32", "auto"))
+    assert torch.equal(x["image"], b.image) and torch.equal(x["speed"], b.speed)
+    assert x["guidance"] is not None and b.guidance is not None and torch.equal(x["guidance"], b.guidance)
+    assert float(x["speed"]) == pytest.approx((3.0 - 2.5) / 1.5)
+
+    control = agent.act(obs)
+    assert isinstance(control, Control) and control.validate() is control
+    assert agent.last is not None and agent.last.control == control
+    with torch.no_grad():
+        ref = agent.model(b.image, b.speed, guidance=b.guidance)
+    np.testing.assert_allclose(agent.last.actions, ref.actions[0].numpy(), atol=1e-6)
+    assert agent.last.speed == pytest.approx(float(ref.speed[0, 0]) * 1.5 + 2.5, abs=1e-5)
+    assert agent._hint is not None  # the projection hint is kept for the next frame
+
+
+def test_branched_agent_follows_the_command(tmp_path: Path) -> None:
+    path, _ = checkpoint(tmp_path, "cil", dropout=0.0)
+    agent = Agent.from_checkpoint(path, precision="fp32")
+    for option, index in ((RoadOption.LEFT, 1), (RoadOption.STRAIGHT, 3), (RoadOption.VOID, 0)):
+        agent.act(observation(option))
+        assert agent.last is not None and agent.last.command == index and agent.last.guidance is None
+        assert agent.last.branches is not None
+        np.testing.assert_allclose(agent.last.actions, agent.last.branches[index], atol=0)
+
+
+def test_yilratt_agent_exposes_attention(tmp_path: Path) -> None:
+    path, _ = checkpoint(tmp_path, "yilratt", guidance_dim=K)
+    agent = Agent.from_checkpoint(path)  # default precision: bf16 where the CPU has it
+    agent.act(observation())
+    assert agent.last is not None and len(agent.last.attention) >= 1
+    for a in agent.last.attention:
+        assert a.ndim == 2 and a.dtype == np.float32 and abs(float(a.sum()) - 1.0) < 1e-2
+
+
+def test_post_processing() -> None:
+    post = PostProcess(brake_threshold=0.1, max_speed=8.0)
+    assert post(np.array([1.7, 0.6, 0.05]), 3.0) == Control(1.0, 0.6, 0.0)  # clip; small brake dropped
+    assert post(np.array([-0.2, 0.6, 0.5]), 3.0) == Control(-0.2, 0.0, 0.5)  # braking cuts throttle
+    assert post(np.array([0.0, 0.9, 0.0]), 9.0) == Control(0.0, 0.0, 0.0)  # speed guard
+    assert post(np.array([np.nan, -1.0, 2.0]), 1.0) == Control(0.0, 0.0, 1.0)
+    assert PostProcess(exclusive_brake=False)(np.array([0.0, 0.6, 0.5]), 1.0) == Control(0.0, 0.6, 0.5)
+    with pytest.raises(ValueError, match="brake_threshold"):
+        PostProcess(brake_threshold=2.0)
+
+
+def test_noise_options_are_seeded(tmp_path: Path) -> None:
+    path, _ = checkpoint(tmp_path, "yaw-guided", guidance_dim=K)
+    clean = Agent.from_checkpoint(path, precision="fp32")
+    noisy = Agent.from_checkpoint(path, precision="fp32", yaw_noise_deg=20.0, seed=3)
+    obs = observation()
+    g0 = clean.inputs(obs)[1]
+    g1 = noisy.inputs(obs)[1]
+    noisy.reset(seed=3)
+    g2 = noisy.inputs(obs)[1]
+    assert g0 is not None and g1 is not None and g2 is not None
+    assert not np.allclose(g0, g1) and np.array_equal(g1, g2)
+
+    cpath, _ = checkpoint(tmp_path, "cil")
+    always = Agent.from_checkpoint(cpath, precision="fp32", command_noise_p=1.0, seed=1)
+    given = [always.inputs(observation(RoadOption.LEFT))[2] for _ in range(5)]
+    assert all(c is not None and c != 1 for c in given)
+
+
+def test_bad_observation_and_checkpoint(tmp_path: Path) -> None:
+    path, _ = checkpoint(tmp_path, "cil")
+    agent = Agent.from_checkpoint(path)
+    obs = observation()
+    with pytest.raises(ValueError, match="no camera image"):
+        agent.act(Observation(**{**obs.__dict__, "image": None}))
+    with pytest.raises(ValueError, match="uint8"):
+        agent.act(Observation(**{**obs.__dict__, "image": obs.image.astype(np.float32)}))
+    with pytest.raises(FileNotFoundError):
+        Agent.from_checkpoint(tmp_path / "none.pt")

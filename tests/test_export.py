@@ -1,0 +1,65 @@
+"""ONNX export: named inputs, dynamic batch, metadata, and agreement with torch through onnxruntime."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import onnx
+import onnxruntime as ort
+import pytest
+import torch
+
+from yawil import models
+from yawil.checkpoint import Norm, make_checkpoint, save_checkpoint
+from yawil.cli import main
+from yawil.export import check_onnx, export_onnx
+
+torch.set_num_threads(2)
+
+
+def _checkpoint(tmp_path: Path, name: str, **cfg: object) -> Path:
+    model = models.create(name, seed=0, **cfg)
+    dim = model.guidance_dim if model.guidance else 0
+    norm = Norm(2.0, 1.0, (0.0,) * dim, (1.0,) * dim)
+    path = tmp_path / f"{name}.pt"
+    save_checkpoint(make_checkpoint(model, norm, {"spacing": 2.0, "count": 4, "reference": "route"}), path)
+    return path
+
+
+def test_cil_export_agrees_with_torch(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    ckpt = _checkpoint(tmp_path, "cil")
+    out = tmp_path / "cil.onnx"
+    assert main(["export", str(ckpt), "--onnx", str(out), "--check"]) == 0
+    printed = capsys.readouterr().out
+    assert "max abs difference" in printed and "ok" in printed
+    proto = onnx.load(str(out))
+    assert [i.name for i in proto.graph.input] == ["image", "speed", "command"]
+    assert [o.name for o in proto.graph.output] == ["actions", "pred_speed"]
+    assert max(op.version for op in proto.opset_import if op.domain in ("", "ai.onnx")) >= 17
+    meta = {p.key: p.value for p in proto.metadata_props}
+    assert json.loads(meta["yawil.norm"])["speed_mean"] == 2.0
+    assert check_onnx(ckpt, out, batch=3, seed=7) <= 1e-4  # another batch size: the batch is dynamic
+    # the branch is chosen by the command input inside the graph
+    sess = ort.InferenceSession(str(out), providers=["CPUExecutionProvider"])
+    x = {"image": np.random.default_rng(0).random((2, 3, 88, 200), dtype=np.float32),
+         "speed": np.zeros((2, 1), np.float32)}  # fmt: skip
+    a0 = sess.run(["actions"], {**x, "command": np.array([0, 0])})[0]
+    a1 = sess.run(["actions"], {**x, "command": np.array([1, 1])})[0]
+    assert not np.allclose(a0, a1)
+
+
+def test_guided_export_has_guidance_input(tmp_path: Path) -> None:
+    ckpt = _checkpoint(tmp_path, "yaw-guided", guidance_dim=4)
+    out = export_onnx(ckpt, tmp_path / "g.onnx")
+    assert [i.name for i in onnx.load(str(out)).graph.input] == ["image", "speed", "guidance"]
+    assert check_onnx(ckpt, out) <= 1e-4
+
+
+def test_export_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["export", str(tmp_path / "none.pt"), "--onnx", str(tmp_path / "x.onnx")]) == 2
+    assert "none.pt" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="opset"):
+        export_onnx(_checkpoint(tmp_path, "cil"), tmp_path / "x.onnx", opset=13)
+    assert not (tmp_path / "x.onnx").exists()

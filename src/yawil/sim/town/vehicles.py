@@ -39,6 +39,7 @@ class Vehicles:
         self.stop_s = np.array([lanes.approaches[i].stop_s if i >= 0 else ln.length - lanes.STOP_BACK
                                 for i, ln in zip(lanes.light_of_lane.tolist(), lanes.lanes, strict=True)])
         self.successors = [np.array(ln.successors, dtype=np.int64) for ln in lanes.lanes]
+        self.exit_of = np.array([max(ln.exit, 0) for ln in lanes.lanes], dtype=np.int64)
         self.n = 0
         self._alloc(0)
 
@@ -103,6 +104,21 @@ class Vehicles:
         if self.n:
             self.x, self.y, self.yaw = self.lanes.lookup(self.lane, self.s)
 
+    def _exit_room(self, ego_on_lane: tuple[int, float], ego_length: float) -> np.ndarray:
+        """Free metres at the start of each lane, minus what is already queued in the junctions towards it.
+
+        A vehicle enters a junction only if its exit lane has room for it ("don't block the box"), which keeps
+        dense traffic from gridlocking.
+        """
+        L = self.lanes.length
+        first = L.copy()
+        np.minimum.at(first, self.lane, self.s - self.length / 2)
+        if ego_on_lane[0] >= 0:
+            first[ego_on_lane[0]] = min(first[ego_on_lane[0]], ego_on_lane[1] - ego_length / 2)
+        conn = self.lane >= self.lanes.n_road_lanes
+        queued = np.bincount(self.exit_of[self.lane[conn]], weights=self.length[conn] + self.S0, minlength=len(L))
+        return first - queued
+
     def occupied(self, extra: np.ndarray) -> np.ndarray:
         """Connector occupancy (bool per lane): vehicles on connectors plus `extra` lane ids (the ego)."""
         occ = np.zeros(len(self.lanes.lanes), dtype=bool)
@@ -112,7 +128,9 @@ class Vehicles:
         return occ
 
     def step(self, dt: float, rng: np.random.Generator, light_codes: np.ndarray, ego: tuple[float, float, float, float],
-             ego_size: tuple[float, float], ego_lanes: np.ndarray, ped_xy: np.ndarray) -> None:
+             ego_size: tuple[float, float], ego_lanes: np.ndarray, ped_xy: np.ndarray,
+             ego_on_lane: tuple[int, float] = (-1, 0.0)) -> None:
+        """Advance dt. `ego_lanes`: junction connectors the ego occupies; `ego_on_lane`: its (road lane, s)."""
         if not self.n:
             return
         lanes = self.lanes
@@ -156,7 +174,9 @@ class Vehicles:
         g_stop = self.stop_s[lane] - s - half
         must_stop = (code != GREEN) & ~((code == YELLOW) & (g_stop < v * v / (2 * self.B_COMF)))
         gate = self.is_gate[self.nxt1] & (lane < lanes.n_road_lanes)
-        blocked = gate & np.any(lanes.conflict[self.nxt1] & occ[None, :], axis=1)
+        room = self._exit_room(ego_on_lane, ego_size[0])
+        blocked = gate & (np.any(lanes.conflict[self.nxt1] & occ[None, :], axis=1)
+                          | (room[self.exit_of[self.nxt1]] < self.length + self.S0 + 1.0))
         stop = (must_stop & (light >= 0) | blocked) & (g_stop > -1.0)
         closer = stop & (g_stop < gap)
         gap = np.where(closer, g_stop, gap)

@@ -141,7 +141,8 @@ class EmbeddedWorld:
         codes = self.lights.update(self.time)
         ped_road = self.pedestrians.xy[self.pedestrians.on_road] if self.pedestrians.n else np.zeros((0, 2))
         self.vehicles.step(DT, self._rng, codes, (self.ego.x, self.ego.y, self.ego.yaw, self.ego.speed),
-                           (self.params.length, self.params.width), self._ego_connectors(), ped_road)
+                           (self.params.length, self.params.width), self._ego_connectors(), ped_road,
+                           self._ego_road_lane())
         self.pedestrians.step(DT, self._rng)
         events = self._criteria(prev)
         return self._observe(tuple(events))
@@ -177,6 +178,17 @@ class EmbeddedWorld:
         m = np.isin(lanes.sample_lane, conns)
         d = np.hypot(lanes.sample_xy[m, 0] - self.ego.x, lanes.sample_xy[m, 1] - self.ego.y)
         return np.unique(lanes.sample_lane[m][d < 2.5])
+
+    def _ego_road_lane(self) -> tuple[int, float]:
+        """(road lane, arc length) under the ego's centre, or (-1, 0) off the road lanes."""
+        assert self.town is not None
+        code = self.town.regions.query_point(self.ego.x, self.ego.y)
+        lanes = self.town.lanes
+        if not 0 <= code < lanes.n_road_lanes:
+            return (-1, 0.0)
+        c = lanes.lanes[code].ctrl
+        u = (c[3] - c[0]) / lanes.length[code]
+        return (code, float((self.ego.x - c[0, 0]) * u[0] + (self.ego.y - c[0, 1]) * u[1]))
 
     def _ego_region(self) -> str:
         assert self.town is not None

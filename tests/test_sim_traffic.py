@@ -1,0 +1,122 @@
+"""Vehicles and pedestrians: no overlaps, lights obeyed, junctions yielded, the ego respected, walkways kept."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+from yawil.sim import Control, EventKind, Pose, Scenario
+from yawil.sim.criteria import boxes_overlap
+from yawil.sim.town.lights import RED
+from yawil.sim.town.regions import GROUND
+from yawil.sim.town.town import get_town
+from yawil.sim.town.vehicles import Vehicles
+from yawil.sim.town.world import EmbeddedWorld
+
+
+def test_dense_traffic_keeps_the_rules() -> None:
+    w = EmbeddedWorld()
+    w.reset(Scenario(town="town02", vehicles=50, pedestrians=30, camera=False), seed=4)
+    veh, ped, lanes = w.vehicles, w.pedestrians, w.town.lanes  # type: ignore[union-attr]
+    assert veh.n == 50 and ped.n == 30
+    ego = w.ego_box()
+    boxes = np.stack([veh.x, veh.y, veh.yaw, veh.length, veh.width], 1)
+    assert not boxes_overlap(ego, boxes).any()  # never spawned on the ego
+    start = veh.x.copy(), veh.y.copy()
+    regions = w.town.regions  # type: ignore[union-attr]
+    for _ in range(400):
+        lane_before, front_before = veh.lane.copy(), veh.s + veh.length / 2
+        w.step(Control(brake=1.0))
+        boxes = np.stack([veh.x, veh.y, veh.yaw, veh.length - 0.2, veh.width - 0.2], 1)
+        for i in range(veh.n):  # no two vehicles overlap
+            assert not boxes_overlap(boxes[i], np.delete(boxes, i, axis=0)).any()
+        # nobody crosses a stop line on red
+        light = lanes.light_of_lane[lane_before]
+        same = veh.lane == lane_before
+        stop = veh.stop_s[lane_before]
+        crossed = same & (light >= 0) & (front_before < stop - 0.5) & (veh.s + veh.length / 2 > stop + 0.5)
+        assert not np.any(crossed & (w.lights.codes[np.maximum(light, 0)] == RED))
+        # at most one of any conflicting pair of junction connectors is in use
+        on = np.unique(veh.lane[veh.lane >= lanes.n_road_lanes])
+        assert not lanes.conflict[np.ix_(on, on)].any()
+        # pedestrians stay on walkways (sidewalks, crosswalks, or the road while jaywalking)
+        assert not np.any(regions.query(ped.xy[:, 0], ped.xy[:, 1]) == GROUND)
+    moved = np.hypot(veh.x - start[0], veh.y - start[1])
+    assert np.median(moved) > 40.0  # traffic flows (400 steps = 40 s)
+    assert np.hypot(*(ped.xy - ped.target).T).max() < 200
+
+
+def test_vehicle_stops_behind_the_ego_and_for_pedestrians() -> None:
+    lanes = get_town("square").lanes
+    lane = lanes.road_lanes[0][0]  # sw -> s, along the bottom, heading east
+    for obstacle in ("ego", "pedestrian"):
+        v = Vehicles(lanes)
+        v._alloc(1)
+        v.lane[:] = lane
+        v.s[:] = 2.0
+        v.v[:] = 8.0
+        v.v0[:] = 8.0
+        v.nxt1[:] = lanes.lanes[lane].successors[0]
+        v.nxt2[:] = lanes.lanes[int(v.nxt1[0])].successors[0]
+        v.length[:], v.width[:] = 4.5, 1.8
+        v._update_pose()
+        (ox,), (oy,), (oyaw,) = lanes.lookup(np.array([lane]), np.array([30.0]))
+        far = (1e4, 1e4, 0.0, 0.0)
+        for _ in range(150):
+            if obstacle == "ego":
+                v.step(0.1, np.random.default_rng(0), np.zeros(len(lanes.approaches), dtype=np.int64),
+                       (ox, oy, oyaw, 0.0), (4.6, 1.9), np.zeros(0, dtype=np.int64), np.zeros((0, 2)))
+            else:
+                v.step(0.1, np.random.default_rng(0), np.zeros(len(lanes.approaches), dtype=np.int64), far,
+                       (4.6, 1.9), np.zeros(0, dtype=np.int64), np.array([[ox, oy]]))
+        assert v.v[0] < 0.05
+        gap = 30.0 - v.s[0] - 4.5 / 2 - (4.6 / 2 if obstacle == "ego" else 0.3)
+        assert 0.5 < gap < 6.0, (obstacle, gap)
+
+
+def test_traffic_yields_to_the_ego_in_a_junction() -> None:
+    """With the ego parked inside the central crossing, no vehicle enters a connector crossing its spot."""
+    w = EmbeddedWorld()
+    w.reset(Scenario(town="square", vehicles=30, camera=False), seed=2)
+    w.ego.x, w.ego.y, w.ego.yaw, w.ego.speed = 0.0, 0.0, math.pi / 2, 0.0
+    lanes = w.town.lanes  # type: ignore[union-attr]
+    taken = w._ego_connectors()
+    assert len(taken) >= 4
+    blocked = lanes.conflict[taken].any(axis=0) | np.isin(np.arange(len(lanes.lanes)), taken)
+    inside_before = set(np.flatnonzero(blocked[w.vehicles.lane]).tolist())
+    for _ in range(300):
+        w.step(Control(brake=1.0))
+        now = set(np.flatnonzero(blocked[w.vehicles.lane]).tolist())
+        assert now <= inside_before  # only those already inside may still be there
+        inside_before &= now
+
+
+def test_pedestrians_cross_roads_and_sometimes_jaywalk() -> None:
+    w = EmbeddedWorld()
+    w.reset(Scenario(town="square", pedestrians=40, camera=False), seed=9)
+    ped = w.pedestrians
+    ped.jaywalk_per_s = 0.05
+    crossing, jay = 0, 0
+    for _ in range(600):
+        w.step(Control(brake=1.0))
+        crossing += int(np.sum(ped.on_road & (ped.dest >= 0)))
+        jay += int(np.sum(ped.dest < 0))
+    assert crossing > 0 and jay > 0
+
+
+def test_ego_can_hit_a_vehicle() -> None:
+    w = EmbeddedWorld()
+    w.reset(Scenario(town="square", start=Pose(1.75, -50.0, math.pi / 2), goal=Pose(1.75, -20.0, math.pi / 2),
+                     vehicles=0, camera=False), seed=0)
+    v = w.vehicles
+    v._alloc(1)
+    lane, s, _ = w.town.lanes.snap(1.75, -40.0, math.pi / 2)  # type: ignore[union-attr]
+    v.lane[:], v.s[:] = lane, s
+    v.nxt1[:] = w.town.lanes.lanes[lane].successors[0]  # type: ignore[union-attr]
+    v.nxt2[:] = w.town.lanes.lanes[int(v.nxt1[0])].successors[0]  # type: ignore[union-attr]
+    v.length[:], v.width[:], v.v0[:] = 4.5, 1.8, 0.01
+    v._update_pose()
+    w.ego.speed = 8.0
+    hits = [e for _ in range(30) for e in w.step(Control(throttle=0.5)).events if e.kind is EventKind.COLLISION]
+    assert hits and hits[0].other_type == "vehicle" and hits[0].other_id == int(v.ids[0])

@@ -22,7 +22,6 @@ from yawil.data.collect import (
     run_episode,
 )
 from yawil.data.manifest import read_manifest
-from yawil.data.reader import open_episode  # noqa: F401  (the reader must accept what we write)
 from yawil.sim.town.dynamics import EgoState, VehicleParams, step_bicycle
 from yawil.sim.types import (
     DT,
@@ -230,3 +229,23 @@ def test_two_workers_match_one(tmp_path: Path) -> None:
     assert sorted(one.episode_ids()) == sorted(two.episode_ids()) == [0, 1, 2]
     for e in one.episodes:
         assert two.entry(e.episode).frames == e.frames and two.entry(e.episode).noise_frames == e.noise_frames
+
+
+# --------------------------------------------------------------------------------------- embedded world
+
+
+def test_two_tiny_episodes_in_the_embedded_world(tmp_path: Path) -> None:
+    from yawil.data.reader import open_episode
+
+    cfg = CollectConfig(town="town02", weathers=("WetNoon",), vehicles=(5, 5), pedestrians=(5, 5), min_route_length=0.0,
+                        noise_fraction=0.3, max_episode_frames=40, straight_keep=1.0)
+    s = collect(tmp_path / "real", town="town02", weathers="WetNoon", episodes=2, progress=False, config=cfg)
+    assert s.episodes_written == 2 and s.outcomes == {"frame_limit": 2}
+    m = read_manifest(tmp_path / "real")
+    assert sorted(m.episode_ids()) == [0, 1] and m.frames == s.frames_written > 0
+    ep = open_episode(m.path_of(m.episodes[0]))
+    rec = ep[len(ep) - 1]
+    assert rec.image.shape == (88, 200, 3) and rec.image.std() > 5.0  # a rendered picture, not a blank
+    assert rec.guidance_yaw.shape == (15,) and rec.guidance_xy.shape == (30,)
+    again = collect(tmp_path / "real", town="town02", weathers="WetNoon", episodes=2, progress=False, config=cfg)
+    assert again.episodes_written == 0 and again.episodes_skipped == 2

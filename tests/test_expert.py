@@ -13,6 +13,7 @@ from yawil.sim.types import (
     DT,
     AgentState,
     Control,
+    Event,
     LightState,
     Observation,
     Pose,
@@ -258,3 +259,42 @@ def test_closed_loop_stops_before_the_red_stop_line() -> None:
     front = car.x + 0.5 * ExpertConfig().length
     assert car.speed < 0.05
     assert 26.0 < front <= 30.0  # waiting behind the line, not far from it
+
+
+def test_does_not_stop_inside_a_junction_or_on_its_crosswalks() -> None:
+    # junction from the stop line at 30 m to the exit at 42 m; a vehicle stands just past the exit
+    route = make_route(straight(0.0, 100.0), turn=(30, 42), option=RoadOption.STRAIGHT, lights=((30, 3),))
+    green = (LightState(3, "green", 30.0, 0.0, 0.0),)
+    queue_head = vehicle(47.0, 0.0, 0.0, 0.0)
+    e = Expert()
+    e.act(observe(route, 22.0, 0.0, 0.0, 5.0, lights=green, agents=(queue_head,)))
+    assert e.state.reason == "vehicle" and e.state.hazard is not None
+    front_at_stop = 22.0 + e.state.hazard.distance + 0.5 * ExpertConfig().length
+    assert front_at_stop <= 30.0  # waits before the stop line, not in the box behind the vehicle
+    far_away = vehicle(70.0, 0.0, 0.0, 0.0)  # enough room after the junction: no change
+    e2 = Expert()
+    e2.act(observe(route, 22.0, 0.0, 0.0, 5.0, lights=green, agents=(far_away,)))
+    assert e2.state.reason == "cruise"
+
+
+# --------------------------------------------------------------------------------------- embedded world
+
+
+def test_drives_a_short_route_in_the_embedded_world() -> None:
+    from yawil.sim import EventKind, Scenario, make_world
+
+    world = make_world("embedded")
+    try:
+        obs = world.reset(Scenario(town="town02", vehicles=15, pedestrians=15, camera=False, min_route_length=100.0), 2)
+        expert = Expert()
+        events: list[Event] = []
+        while not obs.done:
+            obs = world.step(expert.act(obs))
+            events.extend(obs.events)
+    finally:
+        world.close()
+    kinds = [e.kind for e in events]
+    assert EventKind.GOAL_REACHED in kinds
+    assert EventKind.COLLISION not in kinds and EventKind.RED_LIGHT not in kinds
+    assert EventKind.LANE_INVASION not in kinds
+    assert EventKind.LIGHT_PASSED in kinds  # the route crosses a signalised junction

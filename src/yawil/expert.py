@@ -59,6 +59,7 @@ class ExpertConfig:
     time_buffer_after: float = 1.5  # s: and this long after the ego left it
     head_on_deg: float = 160.0  # predicted crossings at a larger angle are oncoming traffic on a curve
     junction_watch: float = 4.0  # m around the junction path where a crossing vehicle blocks entry
+    crosswalk_after_exit: float = 4.0  # m after a junction's exit kept clear (its crosswalk)
     preview_min: float = 30.0  # m of route examined ahead (at least)
     # goal
     goal_overshoot: float = 0.5  # m past the route's end where the centre is planned to stop
@@ -141,18 +142,20 @@ class _RouteCache:
         return np.asarray(k, dtype=np.float64)
 
     def _junction_spans(self) -> list[tuple[float, float]]:
-        """(entry s, exit s) of each signalised junction: from its stop line to where LANEFOLLOW resumes."""
+        """(stop line s, exit s) of each signalised junction: the exit is where LANEFOLLOW resumes after the
+        junction's option run (which starts a few metres before the junction, at or after the stop line)."""
         spans = []
         n = len(self.options)
+        lf = int(RoadOption.LANEFOLLOW)
         for stop_idx, _light in self.route.lights:
             i = min(max(int(stop_idx), 0), n - 1)
             j = i
-            while j < n - 1 and self.options[j] != int(RoadOption.LANEFOLLOW):
+            while j < n - 1 and self.options[j] == lf and self.s[j] - self.s[i] < 10.0:
                 j += 1
-            if j == i:  # no option run after the line: assume a 20 m junction
-                spans.append((float(self.s[i]), float(self.s[i]) + 20.0))
-            else:
-                spans.append((float(self.s[i]), float(self.s[j])))
+            while j < n - 1 and self.options[j] != lf:
+                j += 1
+            exit_s = float(self.s[j]) if j > i and self.options[j - 1] != lf else float(self.s[i]) + 20.0
+            spans.append((float(self.s[i]), exit_s))
         return spans
 
     def in_junction(self, s: float, margin: float = 5.0) -> bool:
@@ -361,8 +364,26 @@ class Expert:
         preview = max(cfg.preview_min, speed * speed / (2 * cfg.comfort_decel) + 15.0,
                       speed * cfg.vehicle_horizon + cfg.plan_accel * cfg.vehicle_horizon**2 / 2 + 10.0)
         preview = min(preview, cfg.cruise_speed * cfg.vehicle_horizon + 20.0)
-        hazards.extend(self._agent_hazards(obs, rc, s_ego, front, speed, preview))
+        agents = self._agent_hazards(obs, rc, s_ego, front, speed, preview)
+        hazards.extend(self._keep_clear(h, rc, s_ego, front) for h in agents)
         return hazards
+
+    def _keep_clear(self, h: Hazard, rc: _RouteCache, s_ego: float, front: float) -> Hazard:
+        """Never come to a stop on a junction's crosswalks or inside it: wait before its stop line instead.
+
+        Stopping there blocks crossing traffic (gridlock) and pedestrians walk into a car standing on their
+        crosswalk. Applies while the ego has not yet passed the stop line; a fast lead is simply followed.
+        """
+        cfg = self.config
+        if h.speed > 3.0:
+            return h
+        c = s_ego + h.distance  # where the centre would stop
+        for lo, hi in rc.junctions:
+            zone_hi = hi + cfg.crosswalk_after_exit
+            if c + 0.5 * cfg.length > lo and c - 0.5 * cfg.length < zone_hi and front <= lo + 0.5:
+                back = lo - cfg.stop_line_margin - 0.5 * cfg.length - s_ego
+                return Hazard(min(back, h.distance), h.reason, 0.0, h.agent_id)
+        return h
 
     def _light_hazards(self, obs: Observation, rc: _RouteCache, s_ego: float, front: float, speed: float) -> list[Hazard]:
         cfg = self.config

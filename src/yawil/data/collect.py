@@ -64,6 +64,7 @@ class CollectConfig:
     on_collision: str = "trim"  # trim: keep frames up to trim_seconds before it; keep: all; discard: drop episode
     trim_seconds: float = 2.0
     stuck_seconds: float = 90.0  # end the episode (outcome "stuck") after this long without moving 1 m
+    max_episode_frames: int = 0  # > 0: end an episode after this many steps (outcome "frame_limit"), for demos
 
     def __post_init__(self) -> None:
         if not self.weathers:
@@ -83,6 +84,8 @@ class CollectConfig:
             raise ValueError(f"CollectConfig.noise_duration must be (lo, hi) seconds with 0 < lo <= hi, got {(lo, hi)!r}")
         if not 0.0 < self.straight_keep <= 1.0:
             raise ValueError(f"CollectConfig.straight_keep must be in (0, 1], got {self.straight_keep!r}")
+        if self.max_episode_frames < 0:
+            raise ValueError(f"CollectConfig.max_episode_frames must be >= 0 (0: no limit), got {self.max_episode_frames!r}")
         if self.blocked_keep_every < 1:
             raise ValueError(f"CollectConfig.blocked_keep_every must be >= 1, got {self.blocked_keep_every!r}")
         if self.on_collision not in COLLISION_POLICIES:
@@ -229,7 +232,6 @@ def run_episode(
     guidance: GuidanceConfig = GuidanceConfig(),
     expert_config: ExpertConfig | None = None,
     on_frame: Callable[[int], None] | None = None,
-    max_frames: int | None = None,
 ) -> EpisodeResult:
     """Drive one episode with the expert and store it (when `writer` is given). Interrupts discard it.
 
@@ -303,7 +305,7 @@ def run_episode(
             elif (result.frames_run - last_move_frame) * 0.1 > cfg.stuck_seconds:
                 result.outcome = "stuck"
                 break
-            if max_frames is not None and result.frames_run >= max_frames:
+            if cfg.max_episode_frames and result.frames_run >= cfg.max_episode_frames:
                 result.outcome = "frame_limit"
                 break
         if result.outcome == "collision" and cfg.on_collision != "keep":

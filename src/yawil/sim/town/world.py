@@ -28,7 +28,7 @@ from yawil.sim.town.geometry import ActorView
 from yawil.sim.town.lights import STATE_NAMES, TrafficLights
 from yawil.sim.town.pedestrians import HEIGHT, PED_COLORS, SIZE, Pedestrians
 from yawil.sim.town.planner import PlannedRoute, plan_route, random_route
-from yawil.sim.town.regions import GROUND, JUNCTION_BASE, SIDEWALK, box_corners
+from yawil.sim.town.regions import JUNCTION_BASE
 from yawil.sim.town.town import Town, get_town, lane_heading_at
 from yawil.sim.town.vehicles import VEHICLE_COLORS, Vehicles
 from yawil.sim.types import (
@@ -121,6 +121,9 @@ class EmbeddedWorld:
         self._light_objs = [[LightState(a.light, name, a.stop_xy[0], a.stop_xy[1], a.yaw) for name in STATE_NAMES]
                             for a in aps]
         self._road_yaw = np.array([ln.evaluate(np.array([0.0]))[1][0] for ln in town.lanes.lanes])
+        self._static_cache = (math.inf, math.inf, None)
+        self._lights_key: bytes = b""
+        self._lights_tuple: tuple[LightState, ...] = ()
         self.c_lane.reset(self._ego_region())
         self.events: tuple[Event, ...] = ()
         self.done = False
@@ -193,10 +196,12 @@ class EmbeddedWorld:
     def _ego_region(self) -> str:
         assert self.town is not None
         reg = self.town.regions
-        corners = box_corners(self.ego.x, self.ego.y, self.ego.yaw, self.params.length - 0.4, self.params.width - 0.4)
-        codes = reg.query(corners[:, 0], corners[:, 1])
-        if np.any((codes == GROUND) | (codes == SIDEWALK) | ((codes < 0) & (codes > JUNCTION_BASE))):
-            return "off_road"
+        c, s = math.cos(self.ego.yaw), math.sin(self.ego.yaw)
+        hl, hw = self.params.length / 2 - 0.2, self.params.width / 2 - 0.2
+        for dx, dy in ((hl, hw), (-hl, hw), (-hl, -hw), (hl, -hw)):
+            code = reg.query_point(self.ego.x + c * dx - s * dy, self.ego.y + s * dx + c * dy)
+            if JUNCTION_BASE < code < 0:
+                return "off_road"
         code = reg.query_point(self.ego.x, self.ego.y)
         if code <= JUNCTION_BASE:
             return "junction"
@@ -210,6 +215,16 @@ class EmbeddedWorld:
             k = int(np.argmin(np.hypot(lanes.sample_xy[m, 0] - self.ego.x, lanes.sample_xy[m, 1] - self.ego.y)))
             heading = float(lanes.sample_yaw[m][k])
         return "lane" if math.cos(self.ego.yaw - heading) >= 0 else "opposite_lane"
+
+    def _near_statics(self, x: float, y: float) -> np.ndarray:
+        """Indices of static objects that could touch the ego, from a cache refreshed every 10 m."""
+        assert self.town is not None
+        cx, cy, cached = getattr(self, "_static_cache", (math.inf, math.inf, None))
+        if cached is None or math.hypot(x - cx, y - cy) > 10.0:
+            st = self.town.statics
+            cached = np.flatnonzero(np.hypot(st[:, 0] - x, st[:, 1] - y) < self.town.static_radius + 14.0)
+            self._static_cache = (x, y, cached)
+        return cached
 
     def _criteria(self, prev: tuple[float, float]) -> list[Event]:
         assert self.town is not None
@@ -230,10 +245,9 @@ class EmbeddedWorld:
                                        np.full(len(near), SIZE)], 1))
                 ids.append(ped.ids[near])
                 types += ["pedestrian"] * len(near)
-        st = town.statics
-        near = np.flatnonzero(np.hypot(st[:, 0] - ex, st[:, 1] - ey) < town.static_radius + 3.5)
+        near = self._near_statics(ex, ey)
         if len(near):
-            boxes.append(st[near])
+            boxes.append(town.statics[near])
             ids.append(near)
             types += ["static"] * len(near)
         if boxes:
@@ -275,7 +289,11 @@ class EmbeddedWorld:
     def _privileged(self, idx: int) -> Privileged:
         assert self.town is not None
         ex, ey = self.ego.x, self.ego.y
-        lights = tuple(self._light_objs[i][int(c)] for i, c in enumerate(self.lights.codes))
+        key = self.lights.codes.tobytes()
+        if key != self._lights_key:
+            self._lights_key = key
+            self._lights_tuple = tuple(self._light_objs[i][int(c)] for i, c in enumerate(self.lights.codes))
+        lights = self._lights_tuple
         agents: list[AgentState] = []
         veh, ped = self.vehicles, self.pedestrians
         for i in np.flatnonzero(np.hypot(veh.x - ex, veh.y - ey) < PRIVILEGED_RADIUS).tolist():

@@ -121,7 +121,7 @@ class EmbeddedWorld:
         self._light_objs = [[LightState(a.light, name, a.stop_xy[0], a.stop_xy[1], a.yaw) for name in STATE_NAMES]
                             for a in aps]
         self._road_yaw = np.array([ln.evaluate(np.array([0.0]))[1][0] for ln in town.lanes.lanes])
-        self._static_cache = (math.inf, math.inf, None)
+        self._static_cache: tuple[float, float, np.ndarray | None] = (math.inf, math.inf, None)
         self._lights_key: bytes = b""
         self._lights_tuple: tuple[LightState, ...] = ()
         self.c_lane.reset(self._ego_region())
@@ -219,7 +219,7 @@ class EmbeddedWorld:
     def _near_statics(self, x: float, y: float) -> np.ndarray:
         """Indices of static objects that could touch the ego, from a cache refreshed every 10 m."""
         assert self.town is not None
-        cx, cy, cached = getattr(self, "_static_cache", (math.inf, math.inf, None))
+        cx, cy, cached = self._static_cache
         if cached is None or math.hypot(x - cx, y - cy) > 10.0:
             st = self.town.statics
             cached = np.flatnonzero(np.hypot(st[:, 0] - x, st[:, 1] - y) < self.town.static_radius + 14.0)

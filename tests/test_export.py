@@ -63,3 +63,12 @@ def test_export_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> No
     with pytest.raises(ValueError, match="opset"):
         export_onnx(_checkpoint(tmp_path, "cil"), tmp_path / "x.onnx", opset=13)
     assert not (tmp_path / "x.onnx").exists()
+
+
+@pytest.mark.slow
+def test_yilratt_export_with_attention_outputs(tmp_path: Path) -> None:
+    ckpt = _checkpoint(tmp_path, "yilratt", guidance_dim=4)
+    out = export_onnx(ckpt, tmp_path / "y.onnx")
+    names = [o.name for o in onnx.load(str(out)).graph.output]
+    assert names[:2] == ["actions", "pred_speed"] and len(names) > 2 and names[2] == "attention_0"
+    assert check_onnx(ckpt, out, batch=2) <= 1e-4

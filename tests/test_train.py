@@ -247,10 +247,9 @@ def test_augmentation_matches_torchvision_v2() -> None:
         cfg = AugmentConfig(**{**only, f"{op}_p": 1.0})
         gen = torch.Generator().manual_seed(0)
         out = augment_batch(img, cfg, gen)
-        # replay the draws to learn the factor used
-        g2 = torch.Generator().manual_seed(0)
-        draws = [torch.rand(1, generator=g2) for _ in range(4 if op == "contrast" else 2)]
-        factor = 1 - 0.4 + 0.8 * float(draws[-1])
+        # replay the draws: the per-sample parameters are the first [10, B] uniforms
+        u = torch.rand((10, 1), generator=torch.Generator().manual_seed(0))
+        factor = 1 - 0.4 + 0.8 * float(u[1 if op == "brightness" else 3, 0])
         torch.testing.assert_close(out, fn(img, factor), atol=1e-6, rtol=0)
     sigmas = torch.tensor([0.7, 1.3])
     two = torch.rand(2, 3, 40, 60)

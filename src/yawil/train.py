@@ -592,7 +592,7 @@ def _train_epoch(
         if cfg.max_steps is not None and pos.step >= cfg.max_steps:
             return "max_steps"
         b = prepare_batch(raw, norm, kind, uses_command, runtime)
-        b.image = augment_batch(b.image, cfg.augment, step_generator(cfg.seed, pos.step, runtime.device))
+        b.image = augment_batch(b.image, cfg.augment, step_generator(cfg.seed, pos.step, runtime.device), inplace=True)
         with runtime.autocast():
             loss, _, _ = compute_loss(model, b, cfg)
         optimizer.zero_grad(set_to_none=True)

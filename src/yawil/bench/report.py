@@ -263,18 +263,9 @@ def trajectory_plot(sets: Sequence[ResultSet], condition: str, spec: str | None 
 
 
 def _map_figure(town: str) -> Any:
-    """The town's bird's-eye map when the simulator can draw it, else empty equal-aspect axes."""
-    import matplotlib.pyplot as plt
+    from yawil.bench.plotting import map_figure
 
-    try:
-        from yawil.sim.town.birdseye import draw_birdseye
-        from yawil.sim.town.town import get_town
-    except ImportError:
-        fig, ax = plt.subplots(figsize=(7, 7))
-        ax.set_aspect("equal")
-        return fig
-    fig = draw_birdseye(get_town(town).geometry)
-    return fig
+    return map_figure(town)
 
 
 # ----- writing -----------------------------------------------------------------------------------------------

@@ -174,12 +174,10 @@ class _Recorder:
     SCALE = 3  # camera upscaling in the video
 
     def __init__(self, obs: Observation) -> None:
+        from yawil.bench.plotting import map_figure
         from yawil.explain import figure_to_array
-        from yawil.sim.town.birdseye import draw_birdseye
-        from yawil.sim.town.town import get_town
 
-        geometry = get_town(obs.town).geometry
-        fig = draw_birdseye(geometry, route_xy=obs.route.xy)
+        fig = map_figure(obs.town, obs.route.xy)
         self._background = figure_to_array(fig)
         ax = fig.axes[0]
         self._to_px = ax.transData.transform

@@ -19,7 +19,7 @@ from yawil.train import prepare_batch, resolve_runtime
 
 torch.set_num_threads(2)
 K = 4
-GC = {"spacing": 2.0, "count": K, "reference": "route"}
+GC: dict[str, Any] = {"spacing": 2.0, "count": K, "reference": "route"}
 
 
 def observation(command: RoadOption = RoadOption.LANEFOLLOW, speed: float = 3.0, seed: int = 0) -> Observation:
@@ -66,6 +66,7 @@ def test_guided_agent_uses_training_preprocessing(tmp_path: Path) -> None:
         "guidance_yaw": torch.from_numpy(g_raw.copy())[None],
     }
     b = prepare_batch(sample, norm, "yaw", False, resolve_runtime("cpu", "fp32", "auto"))
+    assert x["image"] is not None and x["speed"] is not None
     assert torch.equal(x["image"], b.image) and torch.equal(x["speed"], b.speed)
     assert x["guidance"] is not None and b.guidance is not None and torch.equal(x["guidance"], b.guidance)
     assert float(x["speed"]) == pytest.approx((3.0 - 2.5) / 1.5)
@@ -132,6 +133,7 @@ def test_bad_observation_and_checkpoint(tmp_path: Path) -> None:
     path, _ = checkpoint(tmp_path, "cil")
     agent = Agent.from_checkpoint(path)
     obs = observation()
+    assert obs.image is not None
     with pytest.raises(ValueError, match="no camera image"):
         agent.act(Observation(**{**obs.__dict__, "image": None}))
     with pytest.raises(ValueError, match="uint8"):

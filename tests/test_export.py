@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import onnx
@@ -19,7 +20,7 @@ from yawil.export import check_onnx, export_onnx
 torch.set_num_threads(2)
 
 
-def _checkpoint(tmp_path: Path, name: str, **cfg: object) -> Path:
+def _checkpoint(tmp_path: Path, name: str, **cfg: Any) -> Path:
     model = models.create(name, seed=0, **cfg)
     dim = model.guidance_dim if model.guidance else 0
     norm = Norm(2.0, 1.0, (0.0,) * dim, (1.0,) * dim)

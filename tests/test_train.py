@@ -190,7 +190,8 @@ def test_branched_loss_uses_the_commands_branch() -> None:
     pred = predicted_actions(model, out, command)
     assert torch.equal(pred, out.branches[torch.arange(4), command])
     pred.sum().backward()
-    grads = [sum(float(p.grad.abs().sum()) for p in b.parameters() if p.grad is not None) for b in model.branches]
+    heads: Any = model.branches
+    grads = [sum(float(p.grad.abs().sum()) for p in b.parameters() if p.grad is not None) for b in heads]
     assert grads[1] > 0 and grads[2] > 0 and grads[0] == 0 and grads[3] == 0
 
 
@@ -239,7 +240,7 @@ def test_augmentation_matches_torchvision_v2() -> None:
     from torchvision.transforms.v2 import functional as TF
 
     img = torch.rand(1, 3, 40, 60)
-    only = dict(brightness_p=0.0, contrast_p=0.0, blur_p=0.0, noise_p=0.0, dropout_p=0.0)
+    only: dict[str, Any] = dict(brightness_p=0.0, contrast_p=0.0, blur_p=0.0, noise_p=0.0, dropout_p=0.0)
     for op, fn in (
         ("brightness", lambda x, f: TF.adjust_brightness(x, f)),
         ("contrast", lambda x, f: TF.adjust_contrast(x, f)),
@@ -257,3 +258,18 @@ def test_augmentation_matches_torchvision_v2() -> None:
     for i in range(2):
         ref = TF.gaussian_blur(two[i : i + 1], [5, 5], [float(sigmas[i])] * 2)
         torch.testing.assert_close(got[i : i + 1], ref, atol=1e-5, rtol=0)
+
+
+def test_yawil_train_command_and_resume(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import yawil.train
+    from yawil.cli import main
+
+    monkeypatch.setattr(yawil.train, "open_splits", lambda cfg: splits(16, 8))
+    out = tmp_path / "run"
+    common = ["--out", str(out), "--batch-size", "16", "--precision", "fp32", "--no-progress"]
+    assert main(["train", "--model", "cil", "--data", str(tmp_path), "--epochs", "1", *common]) == 0
+    assert main(["train", "--resume", "--epochs", "2", *common]) == 0  # model, data come from config.yaml
+    rows = list(csv.DictReader((out / "metrics.csv").open()))
+    assert [r["epoch"] for r in rows] == ["1", "2"]
+    assert yaml.safe_load((out / "config.yaml").read_text())["epochs"] == 2
+    assert main(["train", "--resume", "--out", str(tmp_path / "nothing")]) == 2

@@ -270,6 +270,10 @@ def epoch_batches(n: int, batch_size: int, seed: int, epoch: int) -> list[list[i
     return [order[i : i + batch_size].tolist() for i in range(0, n, batch_size)]
 
 
+def sequential_batches(n: int, batch_size: int) -> list[list[int]]:
+    return [list(range(i, min(i + batch_size, n))) for i in range(0, n, batch_size)]
+
+
 def step_generator(seed: int, step: int, device: torch.device) -> torch.Generator:
     """Augmentation randomness of one step, independent of everything else that happened."""
     g = torch.Generator(device=device)
@@ -509,8 +513,7 @@ def train(
     from tqdm import tqdm
 
     writer = SummaryWriter(str(out / "tb"), purge_step=pos.step if resume else None)
-    n_val = len(val_ds)
-    val_loader = _loader(val_ds, [list(range(i, min(i + cfg.batch_size, n_val))) for i in range(0, n_val, cfg.batch_size)], cfg, runtime)
+    val_loader = _loader(val_ds, sequential_batches(len(val_ds), cfg.batch_size), cfg, runtime)
     started = time.monotonic()
     stopped_by = "epochs"
 

@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from yawil.sim import Control, EventKind, Pose, Scenario
+from yawil.sim import Control, Event, EventKind, Pose, Scenario
 from yawil.sim.criteria import (
     CollisionCriterion,
     DistanceDrivenCriterion,
@@ -99,8 +99,8 @@ def test_lights_cycle_with_opposite_approaches_together() -> None:
     assert not np.array_equal(other.update(5.0), lights.update(5.0)) or not np.array_equal(other.offset, lights.offset)
 
 
-def _drive(w: EmbeddedWorld, control: Control, steps: int) -> list:
-    events = []
+def _drive(w: EmbeddedWorld, control: Control, steps: int) -> list[Event]:
+    events: list[Event] = []
     for _ in range(steps):
         events += w.step(control).events
     return events

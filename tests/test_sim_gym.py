@@ -16,14 +16,16 @@ def test_registered_and_passes_check_env() -> None:
         assert env_id in gymnasium.registry
     env = gymnasium.make("yawil/Square-v0", camera=False, vehicles=3, pedestrians=3)
     check_env(env.unwrapped, skip_render_check=True)
-    assert set(env.observation_space.spaces) == {"speed", "command", "pose"}  # type: ignore[attr-defined]
+    assert set(env.observation_space.keys()) == {"speed", "command", "pose"}  # type: ignore[attr-defined]
     env.close()
 
 
 def test_image_in_space_with_camera_and_action_bounds() -> None:
     env = YawilDriveEnv(town="square", camera=True)
-    space = env.observation_space.spaces["image"]
+    assert isinstance(env.observation_space, gymnasium.spaces.Dict)
+    space = env.observation_space["image"]
     assert space.shape == (88, 200, 3) and space.dtype == np.uint8
+    assert isinstance(env.action_space, gymnasium.spaces.Box)
     assert np.allclose(env.action_space.low, [-1, 0, 0]) and np.allclose(env.action_space.high, [1, 1, 1])
     env.close()
 

@@ -6,6 +6,7 @@ import json
 import math
 from collections import Counter
 from pathlib import Path
+from typing import Any
 
 import networkx as nx
 import numpy as np
@@ -16,7 +17,7 @@ from yawil.sim.town.planner import _graph, plan_route, random_route, route_endpo
 from yawil.sim.town.town import get_town
 from yawil.sim.types import Pose, RoadOption
 
-RECT = {"name": "rect", "nodes": {"a": [0, 0], "b": [100, 0], "c": [100, 60], "d": [0, 60]},
+RECT: dict[str, Any] = {"name": "rect", "nodes": {"a": [0, 0], "b": [100, 0], "c": [100, 60], "d": [0, 60]},
         "roads": [["a", "b"], ["b", "c"], ["c", "d"], ["d", "a"]]}
 
 

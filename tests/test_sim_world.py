@@ -7,7 +7,7 @@ import math
 import numpy as np
 import pytest
 
-from yawil.sim import Control, EventKind, Pose, RoadOption, Scenario, World, make_world
+from yawil.sim import Control, Event, EventKind, Pose, RoadOption, Scenario, World, make_world
 from yawil.sim.cli import follow_route
 from yawil.sim.criteria import nocrash_timeout
 from yawil.sim.town.dynamics import EgoState, VehicleParams, longitudinal_accel, step_bicycle
@@ -49,7 +49,8 @@ def test_follow_a_left_turn_to_the_goal() -> None:
     assert obs.image is None and obs.frame == 0 and obs.route_index == 0
     assert obs.command is RoadOption.LANEFOLLOW
     assert obs.bounds == w.town.geometry.bounds  # type: ignore[union-attr]
-    commands, events = [], []
+    commands: list[RoadOption] = []
+    events: list[Event] = []
     while not obs.done:
         obs = w.step(follow_route(obs))
         commands.append(obs.command)

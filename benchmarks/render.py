@@ -1,0 +1,153 @@
+"""Camera render speed at 200x88 for a town-size scene (400 x 330 m grid, 50 vehicles, 30 pedestrians).
+
+    .venv/bin/python benchmarks/render.py [--frames 600] [--backends software,opengl]
+
+Prints frames/s and ms/frame per backend and weather, the cost split (scene graph + raster, numpy
+post-processing), and the software/opengl ratio. The town is synthetic: a grid of crossings and
+T-junctions with two-lane roads, sidewalks, markings, lit crossings and buildings on every block side.
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+
+import numpy as np
+
+from yawil.sim.town.geometry import ActorView, Box, LightPost, Marking, Style, TownGeometry
+from yawil.sim.town.render import CameraRenderer
+from yawil.sim.types import Pose
+
+R, WALK = 3.5, 3.0  # road half width, sidewalk width
+XS = (0.0, 100.0, 200.0, 300.0, 400.0)  # north-south roads
+YS = (0.0, 110.0, 220.0, 330.0)  # east-west roads
+
+
+def rect(x0: float, y0: float, x1: float, y1: float) -> np.ndarray:
+    return np.array([[x0, y0], [x1, y0], [x1, y1], [x0, y1]], dtype=float)
+
+
+def grid_town(seed: int = 0) -> TownGeometry:
+    """A CARLA-Town01-sized grid of junctions, built for the benchmark."""
+    rng = np.random.default_rng(seed)
+    style = Style()
+    roads, walks, marks, buildings, props, lights = [], [], [], [], [], []
+    yellow, white = (0.9, 0.75, 0.1), (0.95, 0.95, 0.95)
+    for x in XS:
+        roads.append(rect(x - R, YS[0] - R, x + R, YS[-1] + R))
+        marks.append(Marking(np.array([[x, YS[0]], [x, YS[-1]]]), yellow, 0.15, dashed=True))
+    for y in YS:
+        roads.append(rect(XS[0] - R, y - R, XS[-1] + R, y + R))
+        marks.append(Marking(np.array([[XS[0], y], [XS[-1], y]]), yellow, 0.15, dashed=True))
+    lid = 0
+    for x in XS:
+        for y in YS:
+            for yaw in (0.0, math.pi / 2, math.pi, -math.pi / 2):
+                u, n = np.array([math.cos(yaw), math.sin(yaw)]), np.array([-math.sin(yaw), math.cos(yaw)])
+                stop = np.array([x, y]) - u * (R + 4.0)
+                marks.append(Marking(np.array([stop, stop - n * R]), white, 0.4, kind="stop"))
+                cw = np.array([x, y]) - u * (R + 2.0)
+                marks.append(Marking(np.array([cw - n * R, cw + n * R]), white, 3.0, kind="crosswalk"))
+                post = stop - n * (R + 1.0)
+                lights.append(LightPost(lid, float(post[0]), float(post[1]), yaw))
+                lid += 1
+    for x0, x1 in zip(XS[:-1], XS[1:], strict=True):
+        for y0, y1 in zip(YS[:-1], YS[1:], strict=True):
+            a, b, c, d = float(x0 + R), float(y0 + R), float(x1 - R), float(y1 - R)
+            walks += [rect(a, b, c, b + WALK), rect(a, d - WALK, c, d), rect(a, b + WALK, a + WALK, d - WALK),
+                      rect(c - WALK, b + WALK, c, d - WALK)]
+            inner = (a + WALK + 1, b + WALK + 1, c - WALK - 1, d - WALK - 1)
+            for side in range(4):  # buildings lined along each block side
+                along = (inner[2] - inner[0]) if side < 2 else (inner[3] - inner[1])
+                pos = 0.0
+                while pos < along - 8:
+                    w = float(rng.uniform(10, 18))
+                    w = min(w, along - pos)
+                    depth, h = float(rng.uniform(8, 14)), float(rng.uniform(6, 22))
+                    col = style.building_palette[int(rng.integers(len(style.building_palette)))]
+                    t = pos + w / 2
+                    if side == 0:
+                        buildings.append(Box(inner[0] + t, inner[1] + depth / 2, 0.0, w, depth, h, col))
+                    elif side == 1:
+                        buildings.append(Box(inner[0] + t, inner[3] - depth / 2, 0.0, w, depth, h, col))
+                    elif side == 2:
+                        buildings.append(Box(inner[0] + depth / 2, inner[1] + t, math.pi / 2, w, depth, h, col))
+                    else:
+                        buildings.append(Box(inner[2] - depth / 2, inner[1] + t, math.pi / 2, w, depth, h, col))
+                    pos += w + float(rng.uniform(0.5, 4))
+            for _ in range(3):
+                px = float(rng.uniform(a + 5, c - 5))
+                props.append(Box(px, b + 1.0, 0.15, 0.25, 0.25, 5.0, (0.3, 0.3, 0.3), kind="pole"))
+                props.append(Box(px + 3, d - 1.0, 0.15, 2.0, 2.0, 5.5, (0.2, 0.5, 0.2), kind="tree"))
+    return TownGeometry("bench-grid", (XS[0] - 20, YS[0] - 20, XS[-1] + 20, YS[-1] + 20), roads, walks, marks,
+                        buildings, props, lights, style)
+
+
+def traffic(rng: np.random.Generator, vehicles: int, pedestrians: int) -> list[ActorView]:
+    actors = []
+    for i in range(vehicles):
+        if i % 2:
+            x, y, yaw = float(rng.choice(XS)) + 1.75, float(rng.uniform(0, YS[-1])), math.pi / 2
+        else:
+            x, y, yaw = float(rng.uniform(0, XS[-1])), float(rng.choice(YS)) - 1.75, 0.0
+        actors.append(ActorView(i, "vehicle", x, y, yaw, 4.5, 1.9, 1.5, tuple(rng.uniform(0.1, 0.9, 3))))
+    for i in range(pedestrians):
+        x, y = float(rng.uniform(0, XS[-1])), float(rng.choice(YS)) + R + 1.5
+        actors.append(ActorView(1000 + i, "pedestrian", x, y, 0.0, 0.4, 0.5, 1.75, tuple(rng.uniform(0.1, 0.9, 3))))
+    return actors
+
+
+def run(backend: str, frames: int, weather: str) -> dict[str, float]:
+    town = grid_town()
+    t0 = time.perf_counter()
+    r = CameraRenderer(town, backend=backend)
+    build = time.perf_counter() - t0
+    rng = np.random.default_rng(0)
+    actors = traffic(rng, 50, 30)
+    states = ("red", "yellow", "green")
+    poses = [Pose(5.0 + (i * 0.6) % 390, YS[1] - 1.75, 0.0) for i in range(frames)]  # drive east along a road
+    r.render(poses[0], actors, {}, weather, 0)
+    t_total = t_post = 0.0
+    for i, pose in enumerate(poses):
+        moved = [ActorView(a.id, a.kind, a.x + 0.05 * i * math.cos(a.yaw), a.y + 0.05 * i * math.sin(a.yaw), a.yaw,
+                           a.length, a.width, a.height, a.color) for a in actors]
+        lights = {lp.id: states[(i // 50 + lp.id) % 3] for lp in town.light_posts}
+        t = time.perf_counter()
+        r.render(pose, moved, lights, weather, i)
+        t_total += time.perf_counter() - t
+    img = r._grab()
+    t = time.perf_counter()
+    for i in range(frames):
+        r._post(img, i)
+    t_post = time.perf_counter() - t
+    r.close()
+    return {"build_s": build, "ms": 1e3 * t_total / frames, "post_ms": 1e3 * t_post / frames}
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    ap.add_argument("--frames", type=int, default=600)
+    ap.add_argument("--backends", default="software,opengl")
+    ap.add_argument("--weathers", default="ClearNoon,HardRainNoon")
+    args = ap.parse_args()
+    town = grid_town()
+    print(f"town {town.name}: {len(town.buildings)} buildings, {len(town.road_polygons)} road polygons, "
+          f"{len(town.markings)} markings, {len(town.light_posts)} lights; 50 vehicles, 30 pedestrians; 200x88")
+    print(f"{'backend':10s} {'weather':14s} {'frames/s':>9s} {'ms/frame':>9s} {'numpy post ms':>14s} {'build s':>8s}")
+    per_backend: dict[str, float] = {}
+    for backend in args.backends.split(","):
+        for weather in args.weathers.split(","):
+            try:
+                res = run(backend, args.frames, weather)
+            except RuntimeError as e:
+                print(f"{backend:10s} unavailable: {e}")
+                break
+            per_backend.setdefault(backend, res["ms"])
+            print(f"{backend:10s} {weather:14s} {1e3 / res['ms']:9.0f} {res['ms']:9.3f} {res['post_ms']:14.3f} {res['build_s']:8.2f}")
+    if "software" in per_backend and "opengl" in per_backend:
+        print(f"software / opengl time ratio (first weather): {per_backend['software'] / per_backend['opengl']:.2f}")
+
+
+if __name__ == "__main__":
+    main()

@@ -201,3 +201,80 @@ def _save(fig, path: Path) -> None:  # type: ignore[no-untyped-def]
     tmp = path.with_name(path.stem + ".tmp" + path.suffix)
     fig.savefig(tmp, dpi=110)
     tmp.replace(path)
+
+
+# ----- from a trained agent ------------------------------------------------------------------------------------
+
+LAYER_NAMES = ("layer 1", "layer 2", "layer 3")
+
+
+def _image_tensor(agent, image: np.ndarray):  # type: ignore[no-untyped-def]
+    """The training preprocessing of an image: uint8 HWC -> float [0, 1] [1, 3, H, W] on the agent's device."""
+    import torch
+
+    t = torch.from_numpy(np.ascontiguousarray(image)).to(agent.runtime.device).permute(2, 0, 1)[None].float().div_(255.0)
+    if agent.runtime.channels_last:
+        t = t.contiguous(memory_format=torch.channels_last)
+    return t
+
+
+def _maps_of(agent, image_tensor, attention: list) -> tuple[list[np.ndarray], list[str]]:  # type: ignore[no-untyped-def]
+    """Attention maps when the model has them; else the activation maps of its first three stages (CILRS)."""
+    if attention:
+        return [np.asarray(a, dtype=np.float64) for a in attention], [f"attention {n}" for n in LAYER_NAMES]
+    import torch
+
+    with torch.inference_mode():
+        maps = agent.model.activation_maps(image_tensor)
+    return [m[0].float().cpu().numpy() for m in maps[:3]], [f"activation {n}" for n in LAYER_NAMES]
+
+
+def explain_observation(agent, obs, title: str = "") -> Explained:  # type: ignore[no-untyped-def]
+    """Run the agent on one observation and collect its maps (it acts, so its route hint advances)."""
+    control = agent.act(obs)
+    last = agent.last
+    maps, names = _maps_of(agent, _image_tensor(agent, obs.image), last.attention)
+    return Explained(
+        image=np.asarray(obs.image),
+        maps=maps,
+        steer=control.steer,
+        throttle=control.throttle,
+        brake=control.brake,
+        speed=last.speed,
+        title=title,
+        layer_names=names,
+    )
+
+
+def explain_record(agent, record, title: str = "") -> Explained:  # type: ignore[no-untyped-def]
+    """Run the agent's network on a dataset frame, with the frame's stored speed, guidance and command."""
+    import torch
+
+    from yawil.sim.types import command_index
+
+    dev = agent.runtime.device
+    image = _image_tensor(agent, record.image)
+    speed = agent.norm.speed(torch.tensor([[float(record.speed)]], dtype=torch.float32, device=dev))
+    guidance = None
+    if agent.kind is not None:
+        raw = np.asarray(getattr(record, f"guidance_{agent.kind}"), dtype=np.float32)
+        guidance = agent.norm.guidance(torch.from_numpy(raw.copy()).to(dev)[None])
+    command = None
+    if agent.uses_command:
+        command = torch.tensor([command_index(record.command)], dtype=torch.int64, device=dev)
+    with torch.inference_mode(), agent.runtime.autocast():
+        out = agent.model(image, speed, guidance=guidance, command=command)
+    actions = out.actions[0].float().cpu().numpy()
+    control = agent.post(actions, float(record.speed))
+    attention = [a[0].float().cpu().numpy() for a in out.attention]
+    maps, names = _maps_of(agent, image, attention)
+    return Explained(
+        image=np.asarray(record.image),
+        maps=maps,
+        steer=control.steer,
+        throttle=control.throttle,
+        brake=control.brake,
+        speed=float(agent.norm.speed_inverse(out.speed[0, 0].float()).cpu()),
+        title=title,
+        layer_names=names,
+    )

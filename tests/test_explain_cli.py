@@ -1,0 +1,57 @@
+"""`yawil explain` end to end on a tiny untrained checkpoint: frame figures, grid, episode video."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from yawil import explain, models
+from yawil.checkpoint import Norm, make_checkpoint, save_checkpoint
+from yawil.cli import main
+from yawil.data.synthetic import write_synthetic_dataset
+from yawil.guidance import GuidanceConfig
+
+
+def _checkpoint(tmp_path: Path, name: str, k: int) -> Path:
+    gc = GuidanceConfig(count=k)
+    model = models.create(name, seed=0, guidance_dim=k) if name == "yilratt" else models.create(name, seed=0)
+    dim = model.guidance_dim if model.guidance else 0
+    norm = Norm(2.5, 1.5, tuple(np.zeros(dim)), tuple(np.ones(dim)))
+    path = tmp_path / f"{name}.pt"
+    save_checkpoint(make_checkpoint(model, norm, gc.to_dict(), {"model": name}), path)
+    return path
+
+
+@pytest.mark.parametrize("name", ["yilratt", "cilrs"])
+def test_explain_frames_writes_figures(tmp_path: Path, name: str) -> None:
+    write_synthetic_dataset(tmp_path / "data", episodes=2, frames=5, k=15)
+    ckpt = _checkpoint(tmp_path, name, 15)
+    assert main(["explain", "--checkpoint", str(ckpt), "--frames", str(tmp_path / "data"), "--count", "2", "--out", str(tmp_path / "x")]) == 0
+    assert (tmp_path / "x" / "frame_00.png").stat().st_size > 0
+    assert (tmp_path / "x" / "grid.png").stat().st_size > 0
+
+
+def test_record_maps_are_probability_maps(tmp_path: Path) -> None:
+    from yawil.agent import Agent
+    from yawil.data.reader import open_episode
+
+    write_synthetic_dataset(tmp_path / "data", episodes=1, frames=3, k=15)
+    agent = Agent.from_checkpoint(_checkpoint(tmp_path, "yilratt", 15))
+    with open_episode(next((tmp_path / "data").rglob("*.h5"))) as ep:
+        item = explain.explain_record(agent, ep[0])
+    assert len(item.maps) == 3
+    for m in item.maps:
+        assert np.all(m >= 0) and float(m.sum()) == pytest.approx(1.0, abs=1e-3)
+    assert explain.overlay(item.image, item.maps[0]).shape == item.image.shape
+
+
+def test_explain_episode_video_has_the_frames(tmp_path: Path) -> None:
+    ckpt = _checkpoint(tmp_path, "yilratt", 15)
+    args = ["explain", "--checkpoint", str(ckpt), "--episode", "--town", "town02", "--weather", "ClearNoon",
+            "--vehicles", "0", "--pedestrians", "0", "--steps", "6", "--every", "2", "--out", str(tmp_path / "v")]  # fmt: skip
+    assert main(args) == 0
+    videos = list((tmp_path / "v").glob("episode.*"))
+    assert len(videos) == 1
+    assert explain.read_video_frames(videos[0]) == 3

@@ -12,6 +12,7 @@ from torch import Tensor
 
 from yawil.cli import main
 from yawil.models import DrivingModel, ModelOutput, create, feature_maps, list_models
+from yawil.models.layers import LinearAttention
 
 torch.set_num_threads(2)
 
@@ -89,6 +90,22 @@ def test_yilratt_attention_any_size_and_guidance_kinds() -> None:
     assert [tuple(a.shape[1:]) for a in out.attention] == [(11, 25), (6, 13), (3, 7)]
     for a in out.attention:
         check_probability_map(a, 3)
+
+
+def test_linear_attention_matches_the_formula() -> None:
+    torch.manual_seed(0)
+    block = LinearAttention(local_channels=6, global_dim=10)
+    local, g = torch.randn(2, 6, 3, 5), torch.randn(2, 10)
+    vec, att = block(local, g)
+    proj = torch.einsum("dc,bchw->bdhw", block.project.weight[:, :, 0, 0], local).flatten(2)  # l_i, [B, D, n]
+    u = block.score.weight[0, :, 0, 0]
+    c = torch.einsum("d,bdn->bn", u, proj + g[:, :, None])  # c_i = <u, l_i + g>
+    a = torch.softmax(c, dim=1)
+    torch.testing.assert_close(att, a.view(2, 3, 5))
+    torch.testing.assert_close(vec, torch.einsum("bn,bdn->bd", a, proj))
+    # <u, g> is the same at every position, so the softmax removes it: g does not move the map
+    # (documented in docs/models.md; the test pins the behaviour the paper's formula implies).
+    torch.testing.assert_close(block(local, torch.randn(2, 10))[1], att)
 
 
 @pytest.mark.parametrize("name", ["cil", "cilrs"])

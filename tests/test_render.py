@@ -186,3 +186,18 @@ def test_two_towns_in_one_process() -> None:
     c = CameraRenderer(crossing_town("town-a"))
     assert np.array_equal(c.render(EGO, (), {}, "ClearNoon", 0), ia)
     c.close()
+
+
+def test_opengl_backend_sees_the_same_scene() -> None:
+    """EGL/OpenGL, when the machine has it, draws the same scene (raster details differ a little)."""
+    try:
+        gl = CameraRenderer(crossing_town("gl"), backend="opengl")
+    except RuntimeError as e:  # reported by -ra, never silent
+        pytest.skip(f"no headless OpenGL here: {e}")
+    car = ActorView(1, "vehicle", EGO.x + 12.0, EGO.y, 0.0, 4.5, 1.9, 1.5, (0.8, 0.1, 0.1))
+    a = gl.render(EGO, [car], {0: "red"}, "WetNoon", 0)
+    gl.close()
+    with CameraRenderer(crossing_town("gl")) as sw:
+        b = sw.render(EGO, [car], {0: "red"}, "WetNoon", 0)
+    assert a.shape == b.shape == (88, 200, 3)
+    assert np.abs(a.astype(int) - b.astype(int)).mean() < 12.0

@@ -621,10 +621,13 @@ class CameraRenderer:
         self._amb = self.root.attachNewNode(AmbientLight("ambient"))
         self.root.setLight(self._sun)
         self.root.setLight(self._amb)
-        white = Material("white")  # without it tinydisplay multiplies the lit vertex colour in twice
-        white.setAmbient((1, 1, 1, 1))
-        white.setDiffuse((1, 1, 1, 1))
-        self.root.setMaterial(white)
+        if backend == "software":
+            # tinydisplay multiplies a lit vertex colour in twice unless a white material is set; OpenGL
+            # does it right without one and, with one, ignores vertex colours altogether
+            white = Material("white")
+            white.setAmbient((1, 1, 1, 1))
+            white.setDiffuse((1, 1, 1, 1))
+            self.root.setMaterial(white)
         self._sky: Any = None
         self._weather: Weather | None = None
         self._haze = np.zeros((config.height, 1, 1), np.float32)

@@ -41,7 +41,8 @@ def crossing_town(name: str = "crossing", style: Style | None = None) -> TownGeo
             marks.append(Marking(np.array([a + side * n * (r - 0.2), b + side * n * (r - 0.2)]), white, 0.15, kind="edge"))
         # incoming lane is on the left of d (traffic drives toward the centre, keeps right)
         marks.append(Marking(np.array([d * (r + 4.5), d * (r + 4.5) + n * r]), white, 0.4, kind="stop"))
-        marks.append(Marking(np.array([d * (r + 2) - n * r, d * (r + 2) + n * r]), white, 3.0, kind="crosswalk"))
+        for lat in np.arange(-r + 0.5, r - 0.4, 1.0):  # one Marking per stripe, as the map builder does
+            marks.append(Marking(np.array([d * (r + 0.5) + n * lat, d * (r + 3.5) + n * lat]), white, 0.5, kind="crosswalk"))
     rng = np.random.default_rng(0)
     st = style or Style()
     buildings = []

@@ -31,7 +31,6 @@ LIGHT_STATES: tuple[str, ...] = ("red", "yellow", "green", "off")
 _GROUND_Z, _ROAD_Z, _PUDDLE_Z, _MARK_Z, _SIDEWALK_H = -0.03, 0.0, 0.01, 0.02, 0.15
 _CELL = 10.0  # tinydisplay mis-handles large triangles: flat surfaces are cut into cells of this size
 _DASH, _GAP = 3.0, 3.0  # dashed markings (m)
-_STRIPE, _STRIPE_GAP = 0.5, 0.5  # crosswalk bars (m)
 _PUDDLE_GROUPS = 4
 _SKIN = (0.86, 0.68, 0.56)
 _WINDOW = (0.16, 0.18, 0.22)
@@ -393,10 +392,9 @@ def _head_centre(lp: LightPost) -> tuple[float, float]:
 
 
 def _add_marking(tiles: _Tiles, m: Marking, field: str, town: str) -> None:
-    """Thin quads along the polyline: solid, dashed (3 m on, 3 m off), or crosswalk bars.
+    """Thin quads along the polyline, `width` wide: solid, or dashed (3 m on, 3 m off).
 
-    A crosswalk Marking's polyline runs across the road (curb to curb) and its `width` is the walk's
-    width along the road; bars of that length, 0.5 m wide, are laid every metre along the polyline.
+    Every kind is painted the same way: a crosswalk is one Marking per stripe, a stop line one Marking.
     """
     pts = np.asarray(m.points, dtype=np.float64)
     if pts.ndim != 2 or pts.shape[1] != 2 or pts.shape[0] < 2 or not np.all(np.isfinite(pts)):
@@ -407,9 +405,7 @@ def _add_marking(tiles: _Tiles, m: Marking, field: str, town: str) -> None:
     lengths = np.linalg.norm(seg, axis=1)
     cum = np.concatenate([[0.0], np.cumsum(lengths)])
     total = float(cum[-1])
-    if m.kind == "crosswalk":
-        spans = [(s, min(s + _STRIPE, total), m.width) for s in np.arange(0.25, total - 0.25, _STRIPE + _STRIPE_GAP)]
-    elif m.dashed:
+    if m.dashed:
         spans = [(s, min(s + _DASH, total), m.width) for s in np.arange(0.0, total, _DASH + _GAP)]
     else:
         n = max(1, math.ceil(total / _CELL))
@@ -424,7 +420,7 @@ def _add_marking(tiles: _Tiles, m: Marking, field: str, town: str) -> None:
                 continue
             d = seg[k] / lengths[k]
             p0, p1 = pts[k] + d * (a0 - cum[k]), pts[k] + d * (a1 - cum[k])
-            nrm = np.array([-d[1], d[0]]) * (w / 2)  # for a crosswalk bar, w is its length across
+            nrm = np.array([-d[1], d[0]]) * (w / 2)
             q2 = np.array([p0 - nrm, p1 - nrm, p1 + nrm, p0 + nrm])
             c = q2.mean(0)
             tiles.at("marking", c[0], c[1]).poly(np.column_stack([q2, np.full(4, _MARK_Z)]), m.color, (0, 0, 1))

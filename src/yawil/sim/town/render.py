@@ -628,7 +628,7 @@ class CameraRenderer:
         self._weather: Weather | None = None
         self._haze = np.zeros((config.height, 1, 1), np.float32)
         self._haze_color = np.zeros(3, np.float32)
-        self._rain_layers: list[np.ndarray] = []
+        self._rain_layers: list[tuple[np.ndarray, np.ndarray]] = []
         self._lamp_state = {lid: "off" for lid in self._lamp_rows}
 
         self._actors_root = self.root.attachNewNode("actors")
@@ -749,8 +749,9 @@ class CameraRenderer:
         out += (self._haze_color - out) * self._haze
         if self._rain_layers:
             k = len(self._rain_layers)
-            alpha = np.roll(self._rain_layers[frame % k], (frame // k) * 53 % self.config.width, axis=1)
-            out += (_RAIN_COLOR - out) * alpha
+            rows, cols = self._rain_layers[frame % k]
+            cols = (cols + (frame // k) * 53) % self.config.width
+            out[rows, cols] += (_RAIN_COLOR - out[rows, cols]) * _RAIN_ALPHA
         return (out + 0.5).astype(np.uint8)
 
     def _set_lights(self, light_states: Mapping[int, str]) -> None:
@@ -927,13 +928,13 @@ def _haze_map(w: Weather, cfg: CameraConfig) -> np.ndarray:
 
 _RAIN_COLOR = np.array([205.0, 208.0, 215.0], np.float32)
 _RAIN_LAYERS = 8
+_RAIN_ALPHA = np.float32(0.35)
 
 
-def _rain_layers(rain: float, h: int, w: int) -> list[np.ndarray]:
-    """A few (h, w, 1) alpha layers of slanted streaks; frame k shows layer k % 8, shifted sideways.
-
-    Precomputed per weather so that a frame costs one blend; each image is a function of `frame` alone.
-    """
+def _rain_layers(rain: float, h: int, w: int) -> list[tuple[np.ndarray, np.ndarray]]:
+    """A few layers of slanted streaks as (rows, cols) pixel lists; frame k shows layer k % 8, shifted
+    sideways by a multiple of 53 px. Precomputed per weather so that a frame blends only the streak
+    pixels; each image is a function of `frame` alone."""
     n = int(round(rain * 0.05 * h * w))
     if n == 0:
         return []
@@ -942,10 +943,9 @@ def _rain_layers(rain: float, h: int, w: int) -> list[np.ndarray]:
         rng = np.random.default_rng([0x5241494E, k])
         x0, y0, length = rng.uniform(0, w, n), rng.uniform(-6, h, n), rng.integers(3, 8, n)
         t = np.arange(7)
-        ys = (y0[:, None] + t).astype(int)
-        xs = (x0[:, None] + 0.3 * t).astype(int) % w
+        ys = (y0[:, None] + t).astype(np.int64)
+        xs = (x0[:, None] + 0.3 * t).astype(np.int64) % w
         ok = (t < length[:, None]) & (ys >= 0) & (ys < h)
-        alpha = np.zeros((h, w, 1), np.float32)
-        alpha[ys[ok], xs[ok]] = 0.35
-        layers.append(alpha)
+        flat = np.unique(ys[ok] * w + xs[ok])  # a pixel hit by two streaks is blended once
+        layers.append((flat // w, flat % w))
     return layers

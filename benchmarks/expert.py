@@ -104,11 +104,12 @@ def main(argv: list[str] | None = None) -> int:
         for i in range(args.episodes):
             jobs.append((town, args.seed + i, weathers[i % len(weathers)], args.vehicles, args.pedestrians, min_len))
     t0 = time.perf_counter()
-    if args.workers > 1:
-        with ProcessPoolExecutor(args.workers, mp_context=get_context("spawn")) as pool:
-            records = list(pool.map(_job, jobs))
-    else:
-        records = [_job(j) for j in jobs]
+    records = []
+    with ProcessPoolExecutor(max(args.workers, 1), mp_context=get_context("spawn")) as pool:
+        for k, r in enumerate(pool.map(_job, jobs), 1):
+            records.append(r)
+            print(f"[{k}/{len(jobs)}] {r['town']} seed {r['seed']} {r['weather']}: "
+                  f"{'ok' if r['success'] else r['failure']} ({r['wall_s']} s)", file=sys.stderr, flush=True)
     wall = time.perf_counter() - t0
     if args.jsonl:
         with open(args.jsonl, "w") as f:

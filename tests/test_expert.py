@@ -189,7 +189,7 @@ def test_follows_a_lead_vehicle_and_ignores_oncoming_traffic() -> None:
     e = Expert()
     c = e.act(observe(route, 10.0, 0.0, 0.0, 4.0, agents=(oncoming, behind)))
     assert e.state.reason == "cruise" and c.throttle > 0.0
-    stopped = vehicle(22.0, 0.2, 0.0, 0.0, ident=3)
+    stopped = vehicle(20.0, 0.2, 0.0, 0.0, ident=3)
     e2 = Expert()
     c2 = e2.act(observe(route, 10.0, 0.0, 0.0, 5.0, agents=(stopped,)))
     assert e2.state.reason == "vehicle" and c2.brake > 0.0
@@ -298,3 +298,19 @@ def test_drives_a_short_route_in_the_embedded_world() -> None:
     assert EventKind.COLLISION not in kinds and EventKind.RED_LIGHT not in kinds
     assert EventKind.LANE_INVASION not in kinds
     assert EventKind.LIGHT_PASSED in kinds  # the route crosses a signalised junction
+
+
+def test_waits_for_a_pedestrian_at_the_kerb_of_a_crosswalk_ahead() -> None:
+    # junction from the stop line at 30 m to its exit at 42 m; the exit crosswalk spans 42-46 m
+    route = make_route(straight(0.0, 100.0), turn=(30, 42), option=RoadOption.STRAIGHT, lights=((30, 3),))
+    green = (LightState(3, "green", 30.0, 0.0, 0.0),)
+    kerb = pedestrian(44.0, -3.0, 0.0, 0.0)  # standing at the kerb, right next to the crosswalk
+    e = Expert()
+    e.act(observe(route, 22.0, 0.0, 0.0, 5.0, lights=green, agents=(kerb,)))
+    assert e.state.reason == "pedestrian" and e.state.hazard is not None
+    assert 22.0 + e.state.hazard.distance + 0.5 * ExpertConfig().length <= 30.0  # waits at the stop line
+    leaving = pedestrian(44.0, -3.0, -math.pi / 2, 1.4)  # walking away from the road
+    mid_block = pedestrian(70.0, -3.0, 0.0, 0.0)  # on the sidewalk far from any crosswalk
+    e2 = Expert()
+    e2.act(observe(route, 22.0, 0.0, 0.0, 5.0, lights=green, agents=(leaving, mid_block)))
+    assert e2.state.reason == "cruise"

@@ -50,16 +50,19 @@ class ExpertConfig:
     # hazards
     corridor_margin: float = 0.45  # m added to the ego's half width on each side
     pedestrian_margin: float = 0.6  # extra lateral margin for pedestrians (they turn quickly)
-    stop_gap: float = 3.0  # m kept between the front bumper and a hazard when stopped
+    stop_gap: float = 3.0  # m kept between the front bumper and a pedestrian or crossing point when stopped
+    vehicle_gap: float = 2.0  # m kept behind a standing vehicle (a queue on a 20 m block must fit a car)
     time_gap: float = 1.0  # s of headway behind a moving lead vehicle
     vehicle_horizon: float = 6.0  # s of constant-velocity prediction of vehicles
     pedestrian_horizon: float = 4.0  # s for pedestrians
-    prediction_step: float = 0.25  # s between predicted positions
+    prediction_step: float = 0.4  # s between predicted positions
     time_buffer_before: float = 1.0  # s: the agent reaching a point this long before the ego still conflicts
     time_buffer_after: float = 1.5  # s: and this long after the ego left it
     head_on_deg: float = 160.0  # predicted crossings at a larger angle are oncoming traffic on a curve
     junction_watch: float = 4.0  # m around the junction path where a crossing vehicle blocks entry
     crosswalk_after_exit: float = 4.0  # m after a junction's exit kept clear (its crosswalk)
+    crosswalk_watch: float = 2.5  # m beyond the corridor where a pedestrian at a crosswalk may step in
+    pedestrian_max_speed: float = 1.6  # m/s a standing pedestrian is assumed able to walk at
     preview_min: float = 30.0  # m of route examined ahead (at least)
     # goal
     goal_overshoot: float = 0.5  # m past the route's end where the centre is planned to stop
@@ -207,14 +210,20 @@ def _wrap(a: np.ndarray) -> np.ndarray:
 class _Corridor:
     """The route between two arc lengths, onto which agents' (predicted) positions are projected."""
 
-    def __init__(self, rc: _RouteCache, s0: float, s1: float) -> None:
+    def __init__(self, rc: _RouteCache, s0: float, s1: float, stride: int = 1) -> None:
         lo, hi = rc.window(s0, s1)
-        self.a = rc.xy[lo:hi]
-        self.d = rc.xy[lo + 1 : hi + 1] - self.a
-        self.len2 = rc.seg_len[lo:hi] ** 2
-        self.seg_len = rc.seg_len[lo:hi]
-        self.s = rc.s[lo:hi]
-        self.h = rc.heading[lo:hi]
+        if stride == 1:
+            self.a, self.d = rc.xy[lo:hi], rc.xy[lo + 1 : hi + 1] - rc.xy[lo:hi]
+            self.seg_len, self.s, self.h = rc.seg_len[lo:hi], rc.s[lo:hi], rc.heading[lo:hi]
+        else:
+            idx = np.arange(lo, hi + 1, stride)  # waypoints kept (every `stride`-th, plus the last)
+            if idx[-1] != hi:
+                idx = np.append(idx, hi)
+            pts = rc.xy[idx]
+            self.a, self.d = pts[:-1], pts[1:] - pts[:-1]
+            self.seg_len = np.maximum(np.hypot(self.d[:, 0], self.d[:, 1]), 1e-9)
+            self.s, self.h = rc.s[idx[:-1]], np.arctan2(self.d[:, 1], self.d[:, 0])
+        self.len2 = self.seg_len**2
 
     def project(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """(arc length, distance, path heading) of the nearest route point to each of p (..., 2)."""
@@ -369,17 +378,21 @@ class Expert:
         return hazards
 
     def _keep_clear(self, h: Hazard, rc: _RouteCache, s_ego: float, front: float) -> Hazard:
-        """Never come to a stop on a junction's crosswalks or inside it: wait before its stop line instead.
+        """Never come to a stop inside a junction or on its crosswalks: wait before its stop line instead.
 
         Stopping there blocks crossing traffic (gridlock) and pedestrians walk into a car standing on their
-        crosswalk. Applies while the ego has not yet passed the stop line; a fast lead is simply followed.
+        crosswalk. Applies while the ego has not yet passed the stop line; a fast lead is simply followed;
+        behind a standing queue only the box is kept clear (see below).
         """
         cfg = self.config
         if h.speed > 3.0:
             return h
         c = s_ego + h.distance  # where the centre would stop
+        # behind a queue only the box itself: keeping the exit crosswalk clear too would starve the ego
+        # at every junction followed by a short block (town02's 20 m blocks never have that much room)
+        after = 1.0 if h.reason == "vehicle" else cfg.crosswalk_after_exit
         for lo, hi in rc.junctions:
-            zone_hi = hi + cfg.crosswalk_after_exit
+            zone_hi = hi + after
             if c + 0.5 * cfg.length > lo and c - 0.5 * cfg.length < zone_hi and front <= lo + 0.5:
                 back = lo - cfg.stop_line_margin - 0.5 * cfg.length - s_ego
                 return Hazard(min(back, h.distance), h.reason, 0.0, h.agent_id)
@@ -439,19 +452,57 @@ class Expert:
         out: list[Hazard] = []
         for i in np.flatnonzero(in_corr & ~behind):
             v_along = 0.0 if is_ped[i] else max(float(spd[i] * math.cos(rel0[i])), 0.0)
-            stop_at = float(s0[i] - e_lon[i]) - cfg.stop_gap - 0.5 * cfg.length
+            gap = cfg.stop_gap if is_ped[i] else cfg.vehicle_gap
+            stop_at = float(s0[i] - e_lon[i]) - gap - 0.5 * cfg.length
             if v_along > 0.5:
                 stop_at -= cfg.time_gap * v_along
             else:
                 v_along = 0.0
             out.append(Hazard(stop_at - s_ego, "pedestrian" if is_ped[i] else "vehicle", v_along, agents[i].id))
 
-        movers = np.flatnonzero(~in_corr & (spd >= 0.2))
+        # moving agents that can reach the corridor within their horizon (the rest cannot conflict)
+        horizon = np.where(is_ped, cfg.pedestrian_horizon, cfg.vehicle_horizon)
+        reach = d0 - spd * horizon < margin + 0.5 * np.hypot(length, width)
+        movers = np.flatnonzero(~in_corr & (spd >= 0.2) & reach)
         if movers.size:
+            ahead = _Corridor(rc, max(front - 1.0, 0.0), s_ego + preview, stride=2)
             out.extend(self._crossing_hazards(
                 [agents[i] for i in movers], pos[movers], yaw[movers], spd[movers], length[movers], width[movers],
-                is_ped[movers], margin[movers], proj, rc, s_ego, front, speed))
-        out.extend(self._junction_hazards(rc, front, pos, yaw, spd, e_lat, in_corr, is_ped, agents, proj))
+                is_ped[movers], margin[movers], ahead, rc, s_ego, front, speed))
+        out.extend(self._junction_hazards(rc, front, s0, d0, h0, yaw, spd, e_lat, in_corr, is_ped, agents))
+        peds = np.flatnonzero(is_ped & ~in_corr & (d0 < margin + e_lat + cfg.crosswalk_watch))
+        if peds.size:
+            out.extend(self._crosswalk_hazards(rc, proj, s_ego, front, speed, agents, peds, pos, yaw, spd, s0, d0,
+                                               margin + e_lat))
+        return out
+
+    def _crosswalk_hazards(
+        self, rc: _RouteCache, proj: _Corridor, s_ego: float, front: float, speed: float, agents: list[AgentState],
+        peds: np.ndarray, pos: np.ndarray, yaw: np.ndarray, spd: np.ndarray, s0: np.ndarray, d0: np.ndarray,
+        reach: np.ndarray,
+    ) -> list[Hazard]:
+        """A pedestrian at the kerb of a crosswalk the ego is about to cross may step onto it at any moment
+        (and turn onto it from the sidewalk without warning): unless the ego clears the crosswalk before they
+        could reach its lane, wait before the crosswalk. Pedestrians walking away from the route are ignored."""
+        cfg = self.config
+        rear = s_ego - 0.5 * cfg.length
+        out: list[Hazard] = []
+        for lo, hi in rc.junctions:
+            for c0, c1 in ((lo, lo + 4.0), (hi, hi + cfg.crosswalk_after_exit)):
+                if c0 - front < -0.5 or c0 - front > 25.0:
+                    continue  # already on it (too late to wait) or too far to matter yet
+                near = peds[(s0[peds] > c0 - 1.5) & (s0[peds] < c1 + 1.5)]
+                if not near.size:
+                    continue
+                vel = spd[near, None] * np.stack([np.cos(yaw[near]), np.sin(yaw[near])], axis=-1)
+                _, d_next, _ = proj.project(pos[near] + 0.5 * vel)
+                t_out = float(self._time_to_travel(speed, np.array([c1 - rear]))[0])
+                for k, i in enumerate(near):
+                    if d_next[k] > d0[i] + 0.2:
+                        continue  # walking away from the route
+                    t_enter = max(float(d0[i] - reach[i]), 0.0) / max(float(spd[i]), cfg.pedestrian_max_speed)
+                    if t_enter < t_out + 0.5:
+                        out.append(Hazard(c0 - cfg.stop_line_margin - front, "pedestrian", 0.0, agents[i].id))
         return out
 
     def _crossing_hazards(
@@ -485,8 +536,8 @@ class Expert:
         return out
 
     def _junction_hazards(
-        self, rc: _RouteCache, front: float, pos: np.ndarray, yaw: np.ndarray, spd: np.ndarray, e_lat: np.ndarray,
-        in_corr: np.ndarray, is_ped: np.ndarray, agents: list[AgentState], proj: _Corridor,
+        self, rc: _RouteCache, front: float, s: np.ndarray, d: np.ndarray, h: np.ndarray, yaw: np.ndarray,
+        spd: np.ndarray, e_lat: np.ndarray, in_corr: np.ndarray, is_ped: np.ndarray, agents: list[AgentState],
     ) -> list[Hazard]:
         """Do not enter a junction while a vehicle crosses it near the ego's path through it."""
         cfg = self.config
@@ -495,7 +546,6 @@ class Expert:
             to_entry = entry - front
             if to_entry < 0.0 or to_entry > 20.0:
                 continue
-            s, d, h = proj.project(pos)
             rel = np.abs(_wrap(yaw - h))
             crossing = (rel > math.radians(30.0)) & (rel < math.radians(150.0))
             busy = (~is_ped & ~in_corr & (spd > 0.5) & crossing & (s >= entry) & (s <= exit_)

@@ -54,7 +54,7 @@ class Profile:
 
 
 PROFILES: dict[str, Profile] = {
-    "quick": Profile("quick", frames=1500, collect_workers=2, epochs=2, batch_size=64, max_steps=40,
+    "quick": Profile("quick", frames=6000, collect_workers=2, epochs=2, batch_size=64, max_steps=40,
                      max_minutes=2.0, routes="0:32:4", noise_seeds=2, drive_workers=2),
     "paper": Profile("paper", frames=60000, collect_workers=2, epochs=100, batch_size=512, max_steps=None,
                      max_minutes=None, routes=None, noise_seeds=NOISE_SEEDS, drive_workers=2),
@@ -82,7 +82,10 @@ def _cli(argv: Sequence[str]) -> None:
     """Run a yawil sub-command in-process (their command lines are the stable, documented interface)."""
     from yawil.cli import main
 
-    code = main(list(argv))
+    try:
+        code = main(list(argv))
+    except SystemExit as stop:  # argparse errors and commands that exit
+        code = stop.code if isinstance(stop.code, int) else 1
     if code:
         raise RuntimeError(f"`yawil {' '.join(argv)}` failed with exit code {code}")
 

@@ -22,6 +22,7 @@ from yawil.train_cli import _OPTIONS, add_parser, build_config
 
 torch.set_num_threads(2)
 K = 4
+SIZE = (80, 80)  # the smallest image the CIL convolutions accept: keeps these tests cheap
 
 
 class MemoryDataset(torch.utils.data.Dataset):
@@ -38,7 +39,7 @@ class MemoryDataset(torch.utils.data.Dataset):
             "sim_yaw": rng.normal(0, 0.3, (n, K)).astype(np.float32),
         }
         self.guidance["yaw"][:, 0] = 0.0  # as route-referenced yaw guidance always is
-        base = rng.integers(0, 60, (n, 3, 88, 200)).astype(np.int16)
+        base = rng.integers(0, 60, (n, 3, *SIZE)).astype(np.int16)
         shade = ((self.steer + 0.5) * 190).astype(np.int16)[:, None, None, None]
         self.images = np.clip(base + shade, 0, 255).astype(np.uint8)
         self.episode0 = episode0
@@ -67,7 +68,7 @@ class MemoryDataset(torch.utils.data.Dataset):
         return self.guidance[name.removeprefix("guidance_")]
 
 
-def splits(n_train: int = 48, n_val: int = 16) -> tuple[Any, Any, dict[str, Any]]:
+def splits(n_train: int = 32, n_val: int = 8) -> tuple[Any, Any, dict[str, Any]]:
     tr = MemoryDataset(n_train, seed=1)
     return tr, MemoryDataset(n_val, seed=2, episode0=100), tr.guidance_config
 
@@ -75,7 +76,7 @@ def splits(n_train: int = 48, n_val: int = 16) -> tuple[Any, Any, dict[str, Any]
 def small(tmp_path: Path, name: str, **kw: Any) -> TrainConfig:
     base: dict[str, Any] = dict(
         model="cil", out=str(tmp_path / name), epochs=2, batch_size=16, lr=1e-3, progress=False,
-        precision="fp32", model_args={"dropout": 0.0},
+        precision="fp32", model_args={"dropout": 0.0, "image_size": list(SIZE)},
     )  # fmt: skip
     base.update(kw)
     return TrainConfig(**base)
@@ -144,7 +145,7 @@ def test_train_end_to_end_and_resume_equivalence(tmp_path: Path) -> None:
     assert {"val_l1_steer", "val_l1_throttle", "val_l1_brake", "val_l1_speed", "lr", "time"} <= set(rows[0])
     assert yaml.safe_load((out / "config.yaml").read_text())["batch_size"] == 16
     ckpt = load_checkpoint(out / "last.pt")
-    assert set(REQUIRED_KEYS) <= set(ckpt) and ckpt["epoch"] == 2 and ckpt["step"] == 6
+    assert set(REQUIRED_KEYS) <= set(ckpt) and ckpt["epoch"] == 2 and ckpt["step"] == 4
     assert ckpt["guidance_config"] == {"spacing": 2.0, "count": K, "reference": "route"}
 
     part = train(small(tmp_path, "part", epochs=1), splits=splits())
@@ -160,11 +161,11 @@ def test_train_end_to_end_and_resume_equivalence(tmp_path: Path) -> None:
 
 
 def test_budget_stop_mid_epoch_then_resume(tmp_path: Path) -> None:
-    stopped = train(small(tmp_path, "b", epochs=1, max_steps=2), splits=splits())
-    assert (stopped.stopped_by, stopped.steps, stopped.epochs_done) == ("max_steps", 2, 0)
+    stopped = train(small(tmp_path, "b", epochs=1, max_steps=1), splits=splits())
+    assert (stopped.stopped_by, stopped.steps, stopped.epochs_done) == ("max_steps", 1, 0)
     assert (Path(stopped.out) / "best.pt").is_file()  # a partial epoch still leaves a usable model
     resumed = train(small(tmp_path, "b", epochs=1), resume=True, splits=splits())
-    assert (resumed.steps, resumed.epochs_done) == (3, 1)
+    assert (resumed.steps, resumed.epochs_done) == (2, 1)
     with pytest.raises(ValueError, match="'lr'"):
         train(small(tmp_path, "b", epochs=2, lr=0.5), resume=True, splits=splits())
     with pytest.raises(FileExistsError, match="--resume"):
@@ -267,7 +268,8 @@ def test_yawil_train_command_and_resume(tmp_path: Path, monkeypatch: pytest.Monk
     monkeypatch.setattr(yawil.train, "open_splits", lambda cfg: splits(16, 8))
     out = tmp_path / "run"
     common = ["--out", str(out), "--batch-size", "16", "--precision", "fp32", "--no-progress"]
-    assert main(["train", "--model", "cil", "--data", str(tmp_path), "--epochs", "1", *common]) == 0
+    first = ["--model", "cil", "--data", str(tmp_path), "--epochs", "1", "--model-arg", "image_size=[80, 80]"]
+    assert main(["train", *first, *common]) == 0
     assert main(["train", "--resume", "--epochs", "2", *common]) == 0  # model, data come from config.yaml
     rows = list(csv.DictReader((out / "metrics.csv").open()))
     assert [r["epoch"] for r in rows] == ["1", "2"]

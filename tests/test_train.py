@@ -17,7 +17,7 @@ import yaml
 from yawil import models
 from yawil.augment import AugmentConfig, augment_batch, blur
 from yawil.checkpoint import REQUIRED_KEYS, Norm, load_checkpoint, save_checkpoint
-from yawil.train import TrainConfig, epoch_batches, predicted_actions, train
+from yawil.train import TrainConfig, epoch_batches, label_arrays, predicted_actions, train
 from yawil.train_cli import _OPTIONS, add_parser, build_config
 
 torch.set_num_threads(2)
@@ -194,6 +194,22 @@ def test_branched_loss_uses_the_commands_branch() -> None:
     heads: Any = model.branches
     grads = [sum(float(p.grad.abs().sum()) for p in b.parameters() if p.grad is not None) for b in heads]
     assert grads[1] > 0 and grads[2] > 0 and grads[0] == 0 and grads[3] == 0
+
+
+def test_label_arrays_with_and_without_a_labels_method() -> None:
+    ds = MemoryDataset(10, seed=4)
+
+    class Plain(torch.utils.data.Dataset):
+        def __len__(self) -> int:
+            return len(ds)
+
+        def __getitem__(self, i: int) -> dict[str, Any]:
+            return ds[i]
+
+    fast, slow = label_arrays(ds, "xy"), label_arrays(Plain(), "xy")
+    assert np.allclose(fast[0], slow[0]) and fast[1] is not None and slow[1] is not None
+    assert np.allclose(fast[1], slow[1]) and slow[1].shape == (10, 2 * K)
+    assert label_arrays(ds, None)[1] is None
 
 
 def test_epoch_order_is_a_seeded_permutation() -> None:

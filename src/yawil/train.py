@@ -258,10 +258,18 @@ def prepare_batch(
 
 
 def label_arrays(dataset: Any, kind: str | None) -> tuple[np.ndarray, np.ndarray | None]:
-    """Speed and guidance of every sample, from the label arrays (no image is decoded)."""
-    speed = np.asarray(dataset.labels("speed"), dtype=np.float64)
-    guidance = None if kind is None else np.asarray(dataset.labels(f"guidance_{kind}"), dtype=np.float64)
-    return speed, guidance
+    """Speed and guidance of every training sample, for the normalisation statistics.
+
+    A dataset with `labels(name)` gives the label columns without decoding any image; any other dataset
+    is read sample by sample once (correct, but it decodes the images).
+    """
+    names = ["speed"] + ([] if kind is None else [f"guidance_{kind}"])
+    if hasattr(dataset, "labels"):
+        cols = [np.asarray(dataset.labels(n), dtype=np.float64) for n in names]
+    else:
+        rows = [dataset[i] for i in range(len(dataset))]
+        cols = [np.stack([np.asarray(r[n], dtype=np.float64) for r in rows]) if rows else np.zeros(0) for n in names]
+    return cols[0].reshape(-1), (cols[1] if kind is not None else None)
 
 
 def epoch_batches(n: int, batch_size: int, seed: int, epoch: int) -> list[list[int]]:

@@ -2,7 +2,7 @@
 
 For each model (default config, 88 x 200 input) it prints
 - batch-1 inference latency in ms (median of --runs), fp32 and bf16 autocast + channels_last;
-- training samples/s at --batch (forward + backward + Adam step, after --warmup steps, over --steps);
+- training samples/s at --batch (forward + backward + Adam step, after --warmup steps, median of --steps);
 - the bf16/fp32 speed ratio of both;
 then YILRatt's training samples/s at batch 128 with bf16 + channels_last (the training target is >= 40).
 
@@ -63,14 +63,18 @@ def latency_ms(name: str, bf16: bool, runs: int, warmup: int) -> float:
 
 
 def train_samples_per_s(name: str, bf16: bool, batch: int, steps: int, warmup: int) -> float:
-    """Samples per second of full training steps (the trainer's loss: actions + 0.1 * speed)."""
+    """Samples per second of full training steps (the trainer's loss: actions + 0.1 * speed).
+
+    Uses the median step time: on a shared machine a burst from another process then spoils one step,
+    not the figure.
+    """
     model = build(name, bf16).train()
     opt = torch.optim.Adam(model.parameters(), lr=1e-4)
     x = make_inputs(model, batch, bf16)
     g = torch.Generator().manual_seed(1)
     target = torch.rand(batch, 3, generator=g)
     target_speed = torch.rand(batch, 1, generator=g)
-    elapsed = 0.0
+    times = []
     for i in range(warmup + steps):
         t0 = time.perf_counter()
         with precision(bf16):
@@ -80,8 +84,8 @@ def train_samples_per_s(name: str, bf16: bool, batch: int, steps: int, warmup: i
         loss.backward()
         opt.step()
         if i >= warmup:
-            elapsed += time.perf_counter() - t0
-    return batch * steps / elapsed
+            times.append(time.perf_counter() - t0)
+    return batch / statistics.median(times)
 
 
 def main() -> None:

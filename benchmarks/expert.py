@@ -50,6 +50,7 @@ def run_episode(town: str, seed: int, weather: str, vehicles: int, pedestrians: 
     rec: dict[str, Any] = {"town": town, "seed": seed, "weather": weather, "route_m": round(obs.route.length, 1),
                            "collisions": [], "lane": 0, "red": 0, "lights": 0, "reasons": {}}
     steps = 0
+    last_move, last_xy = 0.0, (obs.pose.x, obs.pose.y)
     agents_before = {a.id: a for a in obs.privileged.agents}
     while not obs.done and (max_steps is None or steps < max_steps):
         control = expert.act(obs)
@@ -74,12 +75,22 @@ def run_episode(town: str, seed: int, weather: str, vehicles: int, pedestrians: 
             elif ev.kind is EventKind.LIGHT_PASSED:
                 rec["lights"] += 1
         agents_before = {a.id: a for a in obs.privileged.agents}
+        if math.hypot(obs.pose.x - last_xy[0], obs.pose.y - last_xy[1]) > 1.0:
+            last_move, last_xy = obs.time, (obs.pose.x, obs.pose.y)
         if rec["collisions"]:
             break  # the benchmark's rule: an episode ends at its first collision
     goal = any(ev.kind is EventKind.GOAL_REACHED for ev in obs.events)
     rec.update(steps=steps, sim_s=round(obs.time, 1), km=round(obs.distance_driven / 1000, 3),
                wall_s=round(time.perf_counter() - t0, 2), goal=goal, success=goal and not rec["collisions"])
-    rec["failure"] = None if rec["success"] else ("collision_" + rec["collisions"][0]["by"] if rec["collisions"] else "timeout")
+    rec["stood_s"] = round(obs.time - last_move, 1)  # standing still at the end (a gridlock if long)
+    hazard = expert.state.hazard
+    rec["blocked_by"] = None if hazard is None else f"{hazard.reason}:{hazard.agent_id}"
+    if rec["success"]:
+        rec["failure"] = None
+    elif rec["collisions"]:
+        rec["failure"] = "collision_" + rec["collisions"][0]["by"]
+    else:  # a timeout: standing for the last minute behind traffic is a gridlock, not slowness
+        rec["failure"] = "timeout_blocked" if rec["stood_s"] > 60.0 else "timeout"
     world.close()
     return rec
 
@@ -127,7 +138,8 @@ def main(argv: list[str] | None = None) -> int:
         n = len(rs)
         ok = sum(r["success"] for r in rs)
         km = sum(r["km"] for r in rs)
-        print(f"| {town} | {weather} | {n} | {ok}/{n} ({100 * ok / n:.0f}%) | {sum(r['failure'] == 'timeout' for r in rs)} "
+        print(f"| {town} | {weather} | {n} | {ok}/{n} ({100 * ok / n:.0f}%) | "
+              f"{sum(str(r['failure']).startswith('timeout') for r in rs)} "
               f"| {sum(r['failure'] == 'collision_ego' for r in rs)} | {sum(r['failure'] == 'collision_other' for r in rs)} "
               f"| {km:.1f} | {sum(r['lane'] for r in rs) / max(km, 1e-9):.2f} | {sum(r['red'] for r in rs)}/{sum(r['lights'] for r in rs)} |")
     failures = [r for r in records if not r["success"]]
@@ -135,7 +147,8 @@ def main(argv: list[str] | None = None) -> int:
         print("\nfailures:")
         for r in failures:
             print(f"  {r['town']} seed {r['seed']} {r['weather']}: {r['failure']} at {r['sim_s']} s, "
-                  f"{r['km']} km of {r['route_m'] / 1000:.2f}; collisions {r['collisions']}; expert reasons {r['reasons']}")
+                  f"{r['km']} km of {r['route_m'] / 1000:.2f}; standing {r['stood_s']} s, last hazard {r['blocked_by']}; "
+                  f"collisions {r['collisions']}; expert reasons {r['reasons']}")
     sim_steps = sum(r["steps"] for r in records)
     print(f"\n{sim_steps} steps in {sum(r['wall_s'] for r in records):.0f} s of episode wall time "
           f"({sim_steps / max(sum(r['wall_s'] for r in records), 1e-9):.0f} steps/s per worker, world + expert)")

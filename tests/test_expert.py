@@ -314,3 +314,29 @@ def test_waits_for_a_pedestrian_at_the_kerb_of_a_crosswalk_ahead() -> None:
     e2 = Expert()
     e2.act(observe(route, 22.0, 0.0, 0.0, 5.0, lights=green, agents=(leaving, mid_block)))
     assert e2.state.reason == "cruise"
+
+
+def test_predicts_a_turning_vehicle_from_its_yaw_rate() -> None:
+    route = make_route(straight(0.0, 100.0))
+
+    def second_call(yaw_rate: float) -> str:
+        e = Expert()
+        e.act(observe(route, 25.0, 0.0, 0.0, 5.0, agents=(vehicle(30.0, -6.0, 0.0, 5.0),), frame=0))
+        turning = vehicle(30.5, -6.0, yaw_rate * DT, 5.0)  # 0.1 s later, turning left towards the route
+        e.act(observe(route, 25.5, 0.0, 0.0, 5.0, agents=(turning,), frame=1))
+        return e.state.reason
+
+    assert second_call(0.5) == "vehicle"  # on a 10 m radius it cuts across the ego's path in ~2 s
+    assert second_call(0.0) == "cruise"  # driving straight on beside the route: no conflict
+
+
+def test_a_pedestrian_stepping_out_too_close_to_stop_for_is_passed_not_braked_into() -> None:
+    route = make_route(straight(0.0, 100.0))
+    late = pedestrian(13.5, 3.0, -math.pi / 2, 1.4)  # 0.9 m ahead of the bumper, 1.6 m from the ego's side
+    e = Expert()
+    c = e.act(observe(route, 10.0, 0.0, 0.0, 5.5, agents=(late,)))
+    assert c.brake == 0.0  # the ego is past in 1.1 s, the pedestrian needs 1.2 s: braking would stop in its way
+    closer = pedestrian(13.5, 2.4, -math.pi / 2, 1.4)  # would touch the ego before it is past: brake
+    e2 = Expert()
+    c2 = e2.act(observe(route, 10.0, 0.0, 0.0, 5.5, agents=(closer,)))
+    assert c2.brake > 0.0

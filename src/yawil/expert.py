@@ -21,7 +21,7 @@ from typing import Any
 
 import numpy as np
 
-from yawil.sim.types import DT, AgentState, Control, LightState, Observation, RoadOption, Route
+from yawil.sim.types import DT, AgentState, Control, LightState, Observation, RoadOption, Route, wrap_angle
 
 
 @dataclass(frozen=True)
@@ -49,7 +49,7 @@ class ExpertConfig:
     yellow_decel: float = 3.0  # stop for yellow only if this deceleration suffices
     # hazards
     corridor_margin: float = 0.45  # m added to the ego's half width on each side
-    pedestrian_margin: float = 0.6  # extra lateral margin for pedestrians (they turn quickly)
+    pedestrian_margin: float = 0.2  # extra lateral margin for pedestrians (kerb walkers stay outside)
     stop_gap: float = 3.0  # m kept between the front bumper and a pedestrian or crossing point when stopped
     vehicle_gap: float = 2.0  # m kept behind a standing vehicle (a queue on a 20 m block must fit a car)
     time_gap: float = 1.0  # s of headway behind a moving lead vehicle
@@ -253,6 +253,9 @@ class Expert:
         self._integral = 0.0
         self._prev_error: float | None = None
         self._light_decisions: dict[int, str] = {}
+        self._prev_yaw: dict[int, float] = {}  # agents' headings at the previous frame, for their yaw rates
+        self._prev_frame: int | None = None
+        self._rates: dict[int, float] = {}
 
     def reset(self) -> None:
         """Forget the episode (route, PID memory, light decisions)."""
@@ -261,6 +264,8 @@ class Expert:
         self._integral = 0.0
         self._prev_error = None
         self._light_decisions = {}
+        self._prev_yaw = {}
+        self._prev_frame = None
 
     # ------------------------------------------------------------------------------------------ control
     def act(self, obs: Observation) -> Control:
@@ -273,6 +278,11 @@ class Expert:
 
         steer = self._pure_pursuit(obs, rc, s_ego, speed)
 
+        consecutive = self._prev_frame is not None and obs.frame == self._prev_frame + 1
+        self._rates = {a.id: wrap_angle(a.yaw - self._prev_yaw[a.id]) / DT for a in obs.privileged.agents
+                       if consecutive and a.id in self._prev_yaw}
+        self._prev_yaw = {a.id: a.yaw for a in obs.privileged.agents}
+        self._prev_frame = obs.frame
         hazards = self._hazards(obs, rc, s_ego, seg, speed)
         v_target, reason, binding = self._target_speed(rc, s_ego, speed, hazards)
         throttle, brake, forced = self._longitudinal(speed, v_target, binding)
@@ -451,6 +461,9 @@ class Expert:
         behind = in_corr & (s0 - e_lon < rear)  # beside or behind the ego in its lane: not ours to stop for
         out: list[Hazard] = []
         for i in np.flatnonzero(in_corr & ~behind):
+            if self._too_late_but_clear(float(s0[i] - e_lon[i]), float(s0[i] + e_lon[i]), float(d0[i]),
+                                        float(e_lat[i]), float(spd[i] * abs(math.sin(rel0[i]))), front, rear, speed):
+                continue
             v_along = 0.0 if is_ped[i] else max(float(spd[i] * math.cos(rel0[i])), 0.0)
             gap = cfg.stop_gap if is_ped[i] else cfg.vehicle_gap
             stop_at = float(s0[i] - e_lon[i]) - gap - 0.5 * cfg.length
@@ -505,18 +518,36 @@ class Expert:
                         out.append(Hazard(c0 - cfg.stop_line_margin - front, "pedestrian", 0.0, agents[i].id))
         return out
 
+    def _too_late_but_clear(self, near: float, far: float, dist: float, e_lat: float, v_lat: float, front: float,
+                            rear: float, speed: float) -> bool:
+        """An agent near the path whose body is not yet in it, too close to stop short of: braking would only
+        leave the ego standing in its way, so go on if the ego is past before the agent could reach it."""
+        cfg = self.config
+        if speed * speed <= 2.0 * 0.9 * cfg.max_decel * max(near - front - 0.5, 0.01):
+            return False  # the ego can still stop short: do that
+        room = dist - (0.5 * cfg.width + e_lat + 0.1)
+        if room <= 0.0:
+            return False  # already touching the ego's path
+        return (far - rear) / max(speed, 0.1) < room / max(v_lat, 0.1)
+
     def _crossing_hazards(
         self, agents: list[AgentState], pos: np.ndarray, yaw: np.ndarray, spd: np.ndarray, length: np.ndarray,
         width: np.ndarray, is_ped: np.ndarray, margin: np.ndarray, proj: _Corridor, rc: _RouteCache,
         s_ego: float, front: float, speed: float,
     ) -> list[Hazard]:
-        """Constant-velocity prediction: a conflict is the agent in the corridor while the ego passes there."""
+        """Predict each agent (vehicles keep their yaw rate through at most a quarter turn, as in a junction;
+        pedestrians walk straight); a conflict is the agent in the corridor while the ego passes there."""
         cfg = self.config
-        t = np.arange(cfg.prediction_step, max(cfg.vehicle_horizon, cfg.pedestrian_horizon) + 1e-9, cfg.prediction_step)
-        vel = spd[:, None] * np.stack([np.cos(yaw), np.sin(yaw)], axis=-1)  # (m, 2)
-        p = pos[:, None, :] + t[None, :, None] * vel[:, None, :]  # (m, T, 2)
+        dt = cfg.prediction_step
+        t = np.arange(dt, max(cfg.vehicle_horizon, cfg.pedestrian_horizon) + 1e-9, dt)
+        rate = np.array([0.0 if ped else float(np.clip(self._rates.get(a.id, 0.0), -1.0, 1.0))
+                         for a, ped in zip(agents, is_ped, strict=True)])
+        turn = np.clip(rate[:, None] * (t[None, :] - 0.5 * dt), -0.5 * math.pi, 0.5 * math.pi)  # mid-step
+        theta = yaw[:, None] + turn  # (m, T)
+        step = (spd[:, None] * dt)[..., None] * np.stack([np.cos(theta), np.sin(theta)], axis=-1)
+        p = pos[:, None, :] + np.cumsum(step, axis=1)  # (m, T, 2)
         s, d, h = proj.project(p)
-        rel = _wrap(yaw[:, None] - h)
+        rel = _wrap(theta - h)
         e_lon, e_lat = _extents(rel, length[:, None], width[:, None])
         horizon = np.where(is_ped, cfg.pedestrian_horizon, cfg.vehicle_horizon)
         inside = (d < margin[:, None] + e_lat) & (s - e_lon > front - 0.5) & (t[None, :] <= horizon[:, None] + 1e-9)
@@ -528,8 +559,25 @@ class Expert:
         t_out = self._time_to_travel(speed, s + e_lon - (s_ego - 0.5 * cfg.length))
         conflict = inside & (t >= t_in - cfg.time_buffer_before) & (t <= t_out + cfg.time_buffer_after)
         out = []
+        rear = s_ego - 0.5 * cfg.length
         for i in np.flatnonzero(conflict.any(axis=1)):
             first = float((s[i] - e_lon[i])[conflict[i]].min())
+            if speed * speed > 2.0 * 0.9 * cfg.max_decel * max(first - front - 0.5, 0.01):
+                # too late to stop short of it: braking would leave the ego standing in its way, so go on
+                # if, at the present speed, the ego is past before the agent arrives
+                thr = 0.5 * cfg.width + e_lat[i] + 0.1  # bodies touching, not the planning margin
+                touch = np.flatnonzero((d[i] < thr) & (s[i] + e_lon[i] > rear))
+                if touch.size == 0:
+                    continue
+                k = int(touch[0])
+                if k == 0:
+                    t_arrive = float(t[0]) - dt
+                else:  # interpolate the moment it reaches the ego's side between two predicted positions
+                    d0k, d1k = float(d[i, k - 1]), float(d[i, k])
+                    t_arrive = float(t[k - 1]) + dt * (d0k - float(thr[k - 1])) / max(d0k - d1k, 1e-6)
+                far = float((s[i] + e_lon[i])[touch].max())
+                if (far - rear) / max(speed, 0.1) < t_arrive:  # braking could only end in its way
+                    continue
             stop_at = first - cfg.stop_gap - 0.5 * cfg.length
             kind = "pedestrian" if is_ped[i] else ("junction" if rc.in_junction(first) else "vehicle")
             out.append(Hazard(stop_at - s_ego, kind, 0.0, agents[i].id))

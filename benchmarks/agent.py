@@ -12,6 +12,7 @@ Prints three markdown tables (docs/performance.md, "Training and agent"):
 from __future__ import annotations
 
 import argparse
+import os
 import statistics
 import sys
 import tempfile
@@ -123,12 +124,14 @@ def main() -> int:
     p.add_argument("--quick", action="store_true", help="fewer repeats")
     args = p.parse_args()
     torch.set_num_threads(args.threads)
-    print(f"torch {torch.__version__}, {args.threads} threads, {torch.backends.cpu.get_cpu_capability()}")
+    load = os.getloadavg()[0]
+    print(f"torch {torch.__version__}, {args.threads} threads, {torch.backends.cpu.get_cpu_capability()}, load {load:.1f}")
     r = 5 if args.quick else 30
     with tempfile.TemporaryDirectory() as d:
         bench_agent(args.models, r, Path(d))
     bench_augment(3 if args.quick else 10)
     bench_train(args.train_models, args.batch, 2 if args.quick else 3)
+    print(f"load average at the end: {os.getloadavg()[0]:.1f} (figures are only meaningful near 0)")
     return 0
 
 

@@ -291,3 +291,20 @@ def test_yawil_train_command_and_resume(tmp_path: Path, monkeypatch: pytest.Monk
     assert [r["epoch"] for r in rows] == ["1", "2"]
     assert yaml.safe_load((out / "config.yaml").read_text())["epochs"] == 2
     assert main(["train", "--resume", "--out", str(tmp_path / "nothing")]) == 2
+
+
+def test_pretrained_backbone_is_loaded(tmp_path: Path) -> None:
+    import torchvision
+
+    from yawil.train import build_model
+
+    net = torchvision.models.resnet34()
+    torch.nn.init.constant_(net.conv1.weight, 0.125)
+    torch.save(net.state_dict(), tmp_path / "r34.pth")
+    cfg = TrainConfig(model="yilratt", pretrained=str(tmp_path / "r34.pth"))
+    model = build_model(cfg, {"yaw": K, "xy": 2 * K, "sim_yaw": K})
+    assert model.guidance_dim == K
+    first = next(p for name, p in model.named_parameters() if name.endswith("conv1.weight"))
+    assert torch.all(first == 0.125)
+    with pytest.raises(FileNotFoundError, match="nope.pth"):
+        build_model(TrainConfig(model="cil", pretrained=str(tmp_path / "nope.pth")), {"yaw": K, "xy": 8, "sim_yaw": K})

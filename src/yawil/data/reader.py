@@ -1,0 +1,136 @@
+"""Reading one episode file back: random access to frames, labels in bulk, metadata decoded."""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+
+from yawil.data.schema import (
+    ALL_FIELDS,
+    EPISODE_FORMAT,
+    IMAGE_SHAPE,
+    LABEL_FIELDS,
+    REQUIRED_ATTRS,
+    SCHEMA_VERSION,
+    FrameRecord,
+)
+
+
+class EpisodeReader:
+    """An open episode file. Opening checks the structure (attrs, datasets, lengths), not the values."""
+
+    def __init__(self, path: str | os.PathLike[str]) -> None:
+        self.path = Path(path)
+        try:
+            self._h5 = h5py.File(self.path, "r")
+        except OSError as err:
+            raise ValueError(f"{self.path}: cannot open as HDF5 (truncated or corrupt?): {err}") from None
+        try:
+            self.attrs = self._read_attrs()
+            self._check_datasets()
+        except (OSError, KeyError, RuntimeError) as err:
+            self._h5.close()
+            raise ValueError(f"{self.path}: unreadable episode structure (corrupt?): {err}") from None
+        except BaseException:
+            self._h5.close()
+            raise
+
+    def _read_attrs(self) -> dict[str, Any]:
+        raw = self._h5.attrs
+        missing = [a for a in REQUIRED_ATTRS if a not in raw]
+        if missing:
+            raise ValueError(f"{self.path}: missing attribute(s) {missing}")
+        if raw["format"] != EPISODE_FORMAT:
+            raise ValueError(f"{self.path}: attribute 'format' is {raw['format']!r}, expected {EPISODE_FORMAT!r}")
+        if int(raw["schema_version"]) != SCHEMA_VERSION:
+            raise ValueError(
+                f"{self.path}: schema_version {raw['schema_version']!r} is not supported (this yawil reads {SCHEMA_VERSION})"
+            )
+        out: dict[str, Any] = {}
+        for key in REQUIRED_ATTRS:
+            v = raw[key]
+            out[key] = v.item() if isinstance(v, np.generic) else v
+        try:
+            out["config"] = json.loads(out["config"])
+            out["meta"] = json.loads(out["meta"])
+        except (TypeError, json.JSONDecodeError) as err:
+            raise ValueError(f"{self.path}: attribute 'config' or 'meta' is not JSON: {err}") from None
+        rl = float(out["route_length"])
+        out["route_length"] = None if math.isnan(rl) else rl
+        return out
+
+    def _check_datasets(self) -> None:
+        missing = [f for f in ALL_FIELDS if f not in self._h5]
+        if missing:
+            raise ValueError(f"{self.path}: missing dataset(s) {missing}")
+        n = int(self.attrs["frames"])
+        for name in ALL_FIELDS:
+            rows = self._h5[name].shape[0]
+            if rows != n:
+                raise ValueError(f"{self.path}: dataset {name!r} has {rows} rows, attribute 'frames' says {n}")
+        if self._h5["image"].shape[1:] != IMAGE_SHAPE:
+            raise ValueError(f"{self.path}: image shape {self._h5['image'].shape[1:]} != {IMAGE_SHAPE}")
+
+    @property
+    def episode(self) -> int:
+        return int(self.attrs["episode"])
+
+    @property
+    def k(self) -> int:
+        return int(self.attrs["K"])
+
+    def __len__(self) -> int:
+        return int(self.attrs["frames"])
+
+    def labels(self) -> dict[str, np.ndarray]:
+        """Every label column of the episode (all but images), read at once."""
+        return {name: self._h5[name][:] for name in LABEL_FIELDS}
+
+    def image(self, i: int) -> np.ndarray:
+        return np.asarray(self._h5["image"][i])
+
+    def images(self, rows: np.ndarray | slice) -> np.ndarray:
+        """Several images; `rows` sorted ascending (h5py's rule for fancy indexing)."""
+        return np.asarray(self._h5["image"][rows])
+
+    def __getitem__(self, i: int) -> FrameRecord:
+        n = len(self)
+        if not -n <= i < n:
+            raise IndexError(f"{self.path}: frame row {i} out of range for {n} rows")
+        i %= n
+        h = self._h5
+        return FrameRecord(
+            image=np.asarray(h["image"][i]),
+            steer=float(h["steer"][i]),
+            throttle=float(h["throttle"][i]),
+            brake=float(h["brake"][i]),
+            speed=float(h["speed"][i]),
+            command=int(h["command"][i]),
+            guidance_yaw=np.asarray(h["guidance_yaw"][i]),
+            guidance_xy=np.asarray(h["guidance_xy"][i]),
+            guidance_sim_yaw=np.asarray(h["guidance_sim_yaw"][i]),
+            pose=tuple(float(v) for v in h["pose"][i]),  # type: ignore[arg-type]
+            frame=int(h["frame"][i]),
+            noise=bool(h["noise"][i]),
+            lane_follow_turn=bool(h["lane_follow_turn"][i]),
+        )
+
+    def close(self) -> None:
+        self._h5.close()
+
+    def __enter__(self) -> EpisodeReader:
+        return self
+
+    def __exit__(self, *exc: object) -> None:
+        self.close()
+
+
+def open_episode(path: str | os.PathLike[str]) -> EpisodeReader:
+    """Open an episode file; ValueError naming the file if it is not a readable yawil episode."""
+    return EpisodeReader(path)

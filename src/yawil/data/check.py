@@ -1,0 +1,105 @@
+"""`yawil data check`: read every episode of a dataset and name the files that break the schema.
+
+A file is bad when it does not open, lacks a dataset or attribute, disagrees with its manifest entry,
+holds labels out of range or NaN (the same test `DrivingDataset` applies, `schema.label_problems`), or
+has image chunks that cannot be decoded (every image is read). Episode files that the manifest does not
+list (a crash between rename and manifest update) and stale temporary files are reported as notes: they
+are not part of the dataset, so they do not make it bad.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from yawil.data.dataset import load_episode_labels
+from yawil.data.manifest import EPISODE_DIR, read_manifest
+from yawil.data.reader import open_episode
+from yawil.data.schema import COMMAND_NAMES
+
+IMAGE_BLOCK = 256  # rows decoded at a time (about 13 MB)
+_EPISODE_RE = re.compile(r"^ep_\d+\.h5$")
+
+
+@dataclass
+class CheckReport:
+    root: Path
+    episodes: int = 0  # episode files checked
+    frames: int = 0  # frames in the good ones
+    bad: dict[str, list[str]] = field(default_factory=dict)  # file (or manifest) -> problems
+    notes: list[str] = field(default_factory=list)
+
+    @property
+    def ok(self) -> bool:
+        return not self.bad
+
+    def lines(self) -> list[str]:
+        out = [f"{self.root}: {self.episodes} episode file(s), {len(self.bad)} bad, {self.frames} good frames"]
+        for name, problems in sorted(self.bad.items()):
+            out.append(f"BAD {name}")
+            out.extend(f"    {p}" for p in problems)
+        out.extend(f"note: {n}" for n in self.notes)
+        out.append("OK" if self.ok else "FAILED")
+        return out
+
+
+def check_images(path: Path) -> list[str]:
+    """Decode every image of an episode file; problems found (empty when all decode)."""
+    with open_episode(path) as ep:
+        for lo in range(0, len(ep), IMAGE_BLOCK):
+            hi = min(lo + IMAGE_BLOCK, len(ep))
+            try:
+                block = ep.images(slice(lo, hi))
+            except (OSError, RuntimeError) as err:
+                return [f"image rows {lo}-{hi - 1} cannot be decoded (truncated or corrupt?): {err}"]
+            if block.dtype != np.uint8:
+                return [f"image: dtype {block.dtype} != expected uint8"]
+    return []
+
+
+def check_dataset(root: str | os.PathLike[str], images: bool = True) -> CheckReport:
+    """Check a whole dataset root; `images=False` skips decoding images (labels and structure only)."""
+    root = Path(root)
+    report = CheckReport(root)
+    try:
+        manifest = read_manifest(root)
+    except ValueError as err:
+        report.bad["manifest.json"] = [str(err)]
+        return report
+    g = manifest.config.get("guidance")
+    k = int(g["count"]) if isinstance(g, dict) and isinstance(g.get("count"), int) else None
+    if k is None:
+        report.notes.append("manifest config has no guidance.count: K of the files is not checked against it")
+    for entry in manifest.episodes:
+        path = manifest.path_of(entry)
+        report.episodes += 1
+        if not path.is_file():
+            report.bad[entry.file] = [f"listed in the manifest but missing: {path}"]
+            continue
+        try:
+            labels = load_episode_labels(path, entry, k)
+        except ValueError as err:
+            report.bad[entry.file] = [str(err).removeprefix(f"{path}: ")]
+            continue
+        problems = []
+        counts = {name: int(np.sum(labels["command"] == value)) for value, name in COMMAND_NAMES.items()}
+        if counts != entry.commands:
+            problems.append(f"command counts {counts} differ from the manifest's {entry.commands}")
+        if images:
+            problems += check_images(path)
+        if problems:
+            report.bad[entry.file] = problems
+        else:
+            report.frames += entry.frames
+    listed = {Path(e.file).name for e in manifest.episodes}
+    ep_dir = root / EPISODE_DIR
+    for p in sorted(ep_dir.iterdir()) if ep_dir.is_dir() else []:
+        if _EPISODE_RE.match(p.name) and p.name not in listed:
+            report.notes.append(f"{EPISODE_DIR}/{p.name} is not in the manifest (ignored by readers; delete it or re-collect)")
+        elif p.name.endswith(".tmp"):
+            report.notes.append(f"{EPISODE_DIR}/{p.name} is a temporary file of an unfinished episode")
+    return report

@@ -48,10 +48,10 @@ class EpisodeReader:
             raise ValueError(f"{self.path}: missing attribute(s) {missing}")
         if raw["format"] != EPISODE_FORMAT:
             raise ValueError(f"{self.path}: attribute 'format' is {raw['format']!r}, expected {EPISODE_FORMAT!r}")
-        if int(raw["schema_version"]) != SCHEMA_VERSION:
-            raise ValueError(
-                f"{self.path}: schema_version {raw['schema_version']!r} is not supported (this yawil reads {SCHEMA_VERSION})"
-            )
+        version = raw["schema_version"]
+        version = version.item() if isinstance(version, np.generic) else version
+        if version != SCHEMA_VERSION:
+            raise ValueError(f"{self.path}: schema_version {version!r} is not supported (this yawil reads {SCHEMA_VERSION})")
         out: dict[str, Any] = {}
         for key in REQUIRED_ATTRS:
             v = raw[key]

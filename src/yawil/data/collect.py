@@ -18,7 +18,6 @@ import queue
 import time
 from collections import deque
 from collections.abc import Callable, Iterator, Sequence
-from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any
@@ -382,12 +381,12 @@ def _worker_episode(seed: int, index: int) -> EpisodeResult:
     def tick(n: int) -> None:
         pending[0] += n
         if pending[0] >= 50:
-            w["progress"].put(pending[0])
+            w["progress"].put((plan.episode_id, pending[0]))
             pending[0] = 0
 
     result = run_episode(w["world"], plan, w["cfg"], w["writer"], w["guidance"], w["expert"], on_frame=tick)
     if pending[0]:
-        w["progress"].put(pending[0])
+        w["progress"].put((plan.episode_id, pending[0]))
     return result
 
 
@@ -456,7 +455,7 @@ def collect(
             summary.frames_written += r.frames_kept
             summary.dataset_frames += r.frames_kept
 
-    bar = _progress_bar(progress, frames, summary.dataset_frames)
+    bar = _Progress(frames, summary.dataset_frames) if progress else None
     indices = todo()
     try:
         if workers == 1:
@@ -465,10 +464,12 @@ def collect(
                 for i in indices:
                     if not budget_left(0, 0.0):
                         break
-                    r = run_episode(world, plan_episode(cfg, seed, i), cfg, writer, gcfg, ecfg,
-                                    on_frame=bar.update if bar is not None else None)
+                    plan = plan_episode(cfg, seed, i)
+                    tick = None if bar is None else (lambda n, ep=plan.episode_id: bar.frame(ep, n))
+                    r = run_episode(world, plan, cfg, writer, gcfg, ecfg, on_frame=tick)
                     account(r)
-                    _bar_episode(bar, r, summary)
+                    if bar is not None:
+                        bar.episode(r, summary)
             finally:
                 world.close()
         else:
@@ -483,76 +484,83 @@ def collect(
 
 def _run_pool(out: str, cfg: CollectConfig, gcfg: GuidanceConfig, ecfg: ExpertConfig, seed: int, workers: int,
               indices: Iterator[int], budget_left: Callable[[int, float], bool], account: Callable[[EpisodeResult], None],
-              bar: Any, summary: CollectSummary, world_factory: WorldFactory) -> None:
-    """N spawn-context processes, each with its own world and writer; at most N episodes in flight."""
+              bar: _Progress | None, summary: CollectSummary, world_factory: WorldFactory) -> None:
+    """N spawn-context processes, each with its own world and writer; at most N episodes in flight.
+
+    Any exception (a worker's, or Ctrl-C) terminates the workers at once: their episodes in progress are
+    lost (their temporary files are removed by the next writer on this dataset), committed ones are kept.
+    """
     import multiprocessing as mp
 
     ctx = mp.get_context("spawn")
     progress_q: Any = ctx.Queue() if bar is not None else _NullQueue()
     kept: list[int] = []
-    with ProcessPoolExecutor(max_workers=workers, mp_context=ctx, initializer=_worker_init,
-                             initargs=(out, cfg, gcfg, ecfg, progress_q, world_factory)) as pool:
-        running: set[Future[EpisodeResult]] = set()
-        exhausted = False
-        try:
-            while True:
-                mean = float(np.mean(kept)) if kept else 0.0
-                while not exhausted and len(running) < workers and budget_left(len(running), mean):
-                    i = next(indices, None)
-                    if i is None:
-                        exhausted = True
-                        break
-                    running.add(pool.submit(_worker_episode, seed, i))
-                if not running:
+    pool = ctx.Pool(workers, initializer=_worker_init, initargs=(out, cfg, gcfg, ecfg, progress_q, world_factory))
+    running: dict[int, Any] = {}  # index -> AsyncResult
+    exhausted = False
+    try:
+        while True:
+            mean = float(np.mean(kept)) if kept else 0.0
+            while not exhausted and len(running) < workers and budget_left(len(running), mean):
+                i = next(indices, None)
+                if i is None:
+                    exhausted = True
                     break
-                finished, running = wait(running, timeout=0.5, return_when=FIRST_COMPLETED)
-                _drain(progress_q, bar)
-                for f in finished:
-                    r = f.result()
-                    account(r)
-                    if r.frames_kept:
-                        kept.append(r.frames_kept)
-                    _bar_episode(bar, r, summary)
-        except BaseException:
-            for f in running:
-                f.cancel()
-            raise
+                running[i] = pool.apply_async(_worker_episode, (seed, i))
+            if not running:
+                break
+            next(iter(running.values())).wait(0.25)
+            if bar is not None:
+                bar.drain(progress_q)
+            for i in [i for i, res in running.items() if res.ready()]:
+                r: EpisodeResult = running.pop(i).get()  # re-raises a worker's exception here
+                account(r)
+                if r.frames_kept:
+                    kept.append(r.frames_kept)
+                if bar is not None:
+                    bar.episode(r, summary)
+        pool.close()
+        pool.join()
+    except BaseException:
+        pool.terminate()
+        pool.join()
+        raise
 
 
 class _NullQueue:
-    def put(self, n: int) -> None:
+    def put(self, item: tuple[int, int]) -> None:
         pass
 
-    def get_nowait(self) -> int:
-        raise queue.Empty
 
+class _Progress:
+    """A tqdm bar of stored frames: live counts from the episodes in progress, corrected at each episode's end
+    (a trimmed collision takes frames back)."""
 
-def _drain(q: Any, bar: Any) -> None:
-    if bar is None:
-        return
-    while True:
-        try:
-            bar.update(q.get_nowait())
-        except queue.Empty:
-            return
+    def __init__(self, frames: int | None, have: int) -> None:
+        from tqdm import tqdm
 
+        self.bar = tqdm(total=frames, initial=min(have, frames) if frames else have, unit="frame", unit_scale=True,
+                        desc="collect", dynamic_ncols=True, smoothing=0.05)
+        self.live: dict[int, int] = {}
 
-def _progress_bar(enabled: bool, frames: int | None, have: int) -> Any:
-    if not enabled:
-        return None
-    from tqdm import tqdm
+    def frame(self, episode: int, n: int) -> None:
+        self.live[episode] = self.live.get(episode, 0) + n
+        self.bar.update(n)
 
-    return tqdm(total=frames, initial=min(have, frames) if frames else have, unit="frame", unit_scale=True,
-                desc="collect", dynamic_ncols=True, smoothing=0.05)
+    def drain(self, q: Any) -> None:
+        while True:
+            try:
+                episode, n = q.get_nowait()
+            except queue.Empty:
+                return
+            self.frame(episode, n)
 
+    def episode(self, r: EpisodeResult, summary: CollectSummary) -> None:
+        self.bar.update(r.frames_kept - self.live.pop(r.episode_id, 0))
+        self.bar.set_postfix(episodes=summary.episodes_written, last=r.outcome, refresh=True)
 
-def _bar_episode(bar: Any, r: EpisodeResult, summary: CollectSummary) -> None:
-    """Set the bar to the dataset's true frame count (live counts may include frames later trimmed)."""
-    if bar is None:
-        return
-    bar.n = summary.dataset_frames
-    bar.set_postfix(episodes=summary.episodes_written, last=r.outcome, refresh=False)
-    bar.refresh()
+    def close(self) -> None:
+        self.bar.close()
 
 
 def collect_paths(out: str | os.PathLike[str]) -> list[Path]:

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import argparse
 import csv
+import math
 from dataclasses import fields
 from pathlib import Path
 from typing import Any
@@ -172,15 +173,48 @@ def test_budget_stop_mid_epoch_then_resume(tmp_path: Path) -> None:
         train(small(tmp_path, "b"), splits=splits())
 
 
-def test_guided_model_gets_dataset_width_and_stored_norm(tmp_path: Path) -> None:
-    tr, va, gc = splits(16, 8)
-    res = train(small(tmp_path, "g", model="yaw-guided", epochs=1, precision="auto"), splits=(tr, va, gc))
+@pytest.fixture(scope="module")
+def real_data(tmp_path_factory: pytest.TempPathFactory) -> Path:
+    """A small dataset written by yawil.data's writer (synthetic images, 5 episodes of 10 frames, K = 4)."""
+    from yawil.data import write_synthetic_dataset
+
+    root = tmp_path_factory.mktemp("data") / "synthetic"
+    write_synthetic_dataset(root, episodes=5, frames=10, k=K, seed=0)
+    return root
+
+
+def test_guided_model_on_written_episodes_stores_norm_for_the_agent(tmp_path: Path, real_data: Path) -> None:
+    from yawil.agent import Agent
+    from yawil.data import DrivingDataset, split_episodes
+
+    cfg = TrainConfig(
+        model="yaw-guided", data=[str(real_data)], out=str(tmp_path / "g"), epochs=1, batch_size=16,
+        val_fraction=0.2, progress=False,
+    )  # fmt: skip
+    res = train(cfg)
+    assert res.metrics and math.isfinite(res.metrics[0]["val_loss"])
     ckpt = load_checkpoint(Path(res.out) / "best.pt")
     assert ckpt["guidance_kind"] == "yaw" and ckpt["model_config"]["guidance_dim"] == K
+    assert ckpt["guidance_config"] == {"spacing": 2.0, "count": K, "reference": "route"}
+    train_ids, _ = split_episodes([real_data], 0.2, 0)
+    ds = DrivingDataset([real_data], episodes=train_ids)
     norm = Norm.from_dict(ckpt["norm"])
-    assert norm.speed_mean == pytest.approx(float(tr.speed.mean()), rel=1e-6)
-    assert np.allclose(norm.guidance_mean, tr.guidance["yaw"].mean(0), atol=1e-6)
-    assert norm.guidance_std[0] == 1.0  # constant component: centred, not divided by zero
+    assert norm.speed_mean == pytest.approx(float(ds.labels("speed").mean()), rel=1e-6)
+    assert np.allclose(norm.guidance_mean, ds.labels("guidance_yaw").mean(0), atol=1e-6)
+    assert np.allclose(norm.guidance_std, ds.labels("guidance_yaw").std(0), atol=1e-6)
+    agent = Agent.from_checkpoint(Path(res.out) / "best.pt")
+    assert agent.norm == norm and agent.guidance_config.count == K
+
+
+def test_norm_keeps_constant_components_finite() -> None:
+    g = np.zeros((5, 3))
+    g[:, 1] = [1, 2, 3, 4, 5]
+    norm = Norm.from_arrays(np.full(5, 2.0), g)
+    assert norm.speed_std == 1.0 and norm.guidance_std[0] == 1.0 and norm.guidance_std[1] == pytest.approx(np.std([1, 2, 3, 4, 5]))
+    out = norm.guidance(torch.tensor(g, dtype=torch.float32))
+    assert torch.isfinite(out).all() and torch.all(out[:, 0] == 0)
+    with pytest.raises(ValueError, match="empty"):
+        Norm.from_arrays(np.zeros(0), None)
 
 
 def test_branched_loss_uses_the_commands_branch() -> None:
@@ -277,19 +311,19 @@ def test_augmentation_matches_torchvision_v2() -> None:
         torch.testing.assert_close(got[i : i + 1], ref, atol=1e-5, rtol=0)
 
 
-def test_yawil_train_command_and_resume(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    import yawil.train
+def test_yawil_train_command_and_resume(tmp_path: Path, real_data: Path) -> None:
     from yawil.cli import main
 
-    monkeypatch.setattr(yawil.train, "open_splits", lambda cfg: splits(16, 8))
     out = tmp_path / "run"
-    common = ["--out", str(out), "--batch-size", "16", "--precision", "fp32", "--no-progress"]
-    first = ["--model", "cil", "--data", str(tmp_path), "--epochs", "1", "--model-arg", "image_size=[80, 80]"]
-    assert main(["train", *first, *common]) == 0
-    assert main(["train", "--resume", "--epochs", "2", *common]) == 0  # model, data come from config.yaml
+    common = ["--out", str(out), "--no-progress", "--max-steps", "2"]
+    first = ["--model", "cil", "--data", str(real_data), "--epochs", "1", "--batch-size", "16", "--val-fraction", "0.2"]
+    assert main(["train", *first, *common]) == 0  # 40 training frames: 3 steps an epoch, stopped after 2
+    # max_steps counts across resumes: the saved limit (2) must be raised to go on
+    assert main(["train", "--resume", "--max-steps", "100", "--out", str(out), "--no-progress"]) == 0
     rows = list(csv.DictReader((out / "metrics.csv").open()))
-    assert [r["epoch"] for r in rows] == ["1", "2"]
-    assert yaml.safe_load((out / "config.yaml").read_text())["epochs"] == 2
+    assert [round(float(r["epoch"]), 2) for r in rows] == [0.67, 1.0]  # the partial epoch, then the whole one
+    assert load_checkpoint(out / "last.pt")["step"] == 3
+    assert yaml.safe_load((out / "config.yaml").read_text())["data"] == [str(real_data)]
     assert main(["train", "--resume", "--out", str(tmp_path / "nothing")]) == 2
 
 

@@ -166,7 +166,7 @@ def test_labels_are_the_experts_control_not_the_noisy_one(tmp_path: Path) -> Non
     assert lft.any() and not lft[:50].any()  # the curve at the end is a lane-follow turn, the straight is not
 
 
-def test_straight_and_blocked_thinning(tmp_path: Path) -> None:
+def test_straight_thinning(tmp_path: Path) -> None:
     cfg = small_cfg(noise_fraction=0.0, straight_keep=0.25)
     r = run_episode(LineWorld(), plan_episode(cfg, 0, 1), cfg, None)
     assert r.outcome == "goal"

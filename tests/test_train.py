@@ -325,6 +325,7 @@ def test_yawil_train_command_and_resume(tmp_path: Path, real_data: Path) -> None
     assert load_checkpoint(out / "last.pt")["step"] == 3
     assert yaml.safe_load((out / "config.yaml").read_text())["data"] == [str(real_data)]
     assert main(["train", "--resume", "--out", str(tmp_path / "nothing")]) == 2
+    assert main(["train", "--data", str(tmp_path / "no-data"), "--out", str(tmp_path / "x")]) == 2
 
 
 def test_pretrained_backbone_is_loaded(tmp_path: Path) -> None:

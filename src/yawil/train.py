@@ -411,11 +411,7 @@ def _loader(dataset: Any, batches: list[list[int]], cfg: TrainConfig, runtime: R
 
 def open_splits(cfg: TrainConfig) -> tuple[Any, Any, dict[str, Any]]:
     """Train and validation datasets (split by episode) and the guidance config they were written with."""
-    import importlib
-
-    # yawil.data.DrivingDataset / split_episodes, by the data module's contract (typed loosely on purpose:
-    # a dataset is anything with __len__, __getitem__ -> sample dict and, ideally, labels(name))
-    data: Any = importlib.import_module("yawil.data")
+    from yawil import data
 
     if not cfg.data:
         raise ValueError("train config: data is empty; give at least one dataset root (--data DIR)")

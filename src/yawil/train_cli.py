@@ -135,10 +135,10 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         cfg = build_config(args)
-    except (ValueError, FileNotFoundError) as err:
+        result = train(cfg, resume=bool(args.resume))
+    except (ValueError, FileNotFoundError, FileExistsError) as err:  # bad settings or data: no traceback
         print(f"yawil train: {err}", file=sys.stderr)
         return 2
-    result = train(cfg, resume=bool(args.resume))
     last = result.metrics[-1] if result.metrics else None
     summary = f"val_loss {last['val_loss']:.4f}, best {result.best_val:.4f}" if last else "no epoch finished"
     print(

@@ -25,7 +25,13 @@ from yawil.sim.carla.infractions import (
     light_state_name,
     stop_line_arrays,
 )
-from yawil.sim.carla.topology import CarlaTopology, StopLine, waypoint_path, waypoint_tuple, write_map_description
+from yawil.sim.carla.topology import (
+    CarlaTopology,
+    StopLine,
+    waypoint_path,
+    waypoint_tuple,
+    write_map_description,
+)
 from yawil.sim.carla.weather import CARLA_PRESETS, carla_weather
 from yawil.sim.criteria import LaneInvasionCriterion, RedLightCriterion
 from yawil.sim.types import Control, EventKind, Pose, RoadOption

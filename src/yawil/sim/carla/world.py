@@ -161,13 +161,12 @@ class CarlaWorld:
 
     def reconnect(self) -> None:
         """After a SimulatorError: forget the episode's actors, connect again (raises CarlaSetupError if down)."""
-        with contextlib.suppress(RuntimeError):
-            self._destroy_actors()
-        self._actors = []
+        self._destroy_actors()
         self.scenario = None
         if self._given_client is None:
             self._client = None
         self.connect()
+        self._destroy_actors()
 
     @contextlib.contextmanager
     def _guard(self, what: str) -> Iterator[None]:
@@ -235,10 +234,11 @@ class CarlaWorld:
         """Destroy our actors and give the server back its settings (asynchronous mode, as we found it)."""
         if self._world is None:
             return
+        self._destroy_actors()
         with contextlib.suppress(RuntimeError):
-            self._destroy_actors()
             if getattr(self, "_tm", None) is not None:
                 self._tm.set_synchronous_mode(False)
+        with contextlib.suppress(RuntimeError):
             if self._original_settings is not None:
                 self._world.apply_settings(self._original_settings)
         self.scenario = None
@@ -388,16 +388,21 @@ class CarlaWorld:
         self.bounds = (b[0] - BOUNDS_MARGIN, b[1] - BOUNDS_MARGIN, b[2] + BOUNDS_MARGIN, b[3] + BOUNDS_MARGIN)
 
     def _destroy_actors(self) -> None:
+        """Stop and destroy what we spawned; actors the server could not be asked about stay listed, so a
+        reconnect or the next reset destroys them (after a crash they are gone and destroy() says False)."""
         for s in getattr(self, "_sensors", []):
             with contextlib.suppress(RuntimeError):
                 s.stop()
         for ctrl in [c for _, c in getattr(self, "_walkers", [])]:
             with contextlib.suppress(RuntimeError):
                 ctrl.stop()
+        left = []
         for a in reversed(self._actors):
-            with contextlib.suppress(RuntimeError):
+            try:
                 a.destroy()
-        self._actors, self._sensors, self._walkers, self._traffic = [], [], [], []
+            except RuntimeError:
+                left.append(a)
+        self._actors, self._sensors, self._walkers, self._traffic = left[::-1], [], [], []
 
     # ------------------------------------------------------------------ per step
     def _tick(self) -> None:

@@ -9,6 +9,7 @@ import numpy as np
 from yawil.sim import Control, EventKind, Pose, Scenario
 from yawil.sim.criteria import boxes_overlap
 from yawil.sim.town.lights import RED
+from yawil.sim.town.pedestrians import SIZE, Pedestrians
 from yawil.sim.town.regions import GROUND
 from yawil.sim.town.town import get_town
 from yawil.sim.town.vehicles import Vehicles
@@ -120,3 +121,44 @@ def test_ego_can_hit_a_vehicle() -> None:
     w.ego.speed = 8.0
     hits = [e for _ in range(30) for e in w.step(Control(throttle=0.5)).events if e.kind is EventKind.COLLISION]
     assert hits and hits[0].other_type == "vehicle" and hits[0].other_id == int(v.ids[0])
+
+
+# ---------------------------------------------------------------- regressions of the expert's findings
+def test_jaywalker_does_not_step_in_front_of_or_into_a_standing_ego() -> None:
+    """Finding 1 (town02 seeds 8, 20, 39, 40): a jaywalker crossed straight through the standing ego."""
+    town = get_town("square")
+    walk = town.walkways
+    ped = Pedestrians(walk, jaywalk_per_s=1e4)  # jaywalks at the first chance
+    ped.spawn(1, np.random.default_rng(0), keep_out=[])
+    e = next(k for k in range(len(walk.edges)) if walk.edge_twin[k] >= 0)
+    a, b = walk.edges[e]
+    ped.xy[0] = (walk.xy[a] + walk.xy[b]) / 2
+    ped.target[0], ped.dest[0], ped.prev[0], ped.edge[0] = walk.xy[b], b, a, e
+    ped.speed[0] = 0.0  # stands on its sidewalk until it crosses
+    twin = walk.edges[walk.edge_twin[e]]
+    far_side = (walk.xy[twin[0]] + walk.xy[twin[1]]) / 2
+    mid = (ped.xy[0] + far_side) / 2  # the road's centre line, where it would cross
+    u = walk.xy[b] - walk.xy[a]
+    ego = np.array([[mid[0], mid[1], math.atan2(u[1], u[0]), 4.6, 1.9, 0.0]])
+    rng = np.random.default_rng(1)
+    for _ in range(50):  # the ego stands on the crossing: it waits on the sidewalk
+        ped.step(0.1, rng, ego)
+        assert not ped.on_road[0]
+    ped.speed[0] = 1.3
+    for _ in range(5):  # the road is clear: it goes
+        ped.step(0.1, rng, np.zeros((0, 6)))
+    assert ped.on_road[0] and ped.dest[0] == -1
+    start = ped.xy[0].copy()
+    ped.jaywalk_per_s = 0.0  # once back, it would try again further along
+    closest = math.inf
+    for _ in range(120):  # a car pulls up across its way: it stops short, then turns back
+        ped.step(0.1, rng, ego)
+        closest = min(closest, float(Pedestrians._box_distance(ped.xy[:1], ego[:, :5])[0, 0]))
+    assert closest > SIZE / 2
+    assert not ped.on_road[0] and ped.edge[0] == e and ped.dest[0] >= 0  # back on its own sidewalk
+    # a vehicle coming at 8 m/s from 20 m away is too close to cross in front of; one 80 m away is not
+    heading = math.atan2(u[1], u[0])
+    for dist, clear in ((20.0, False), (80.0, True)):
+        x, y = mid - dist * u / np.hypot(*u)
+        car = np.array([[x, y, heading, 4.5, 1.8, 8.0]])
+        assert Pedestrians._crossing_clear(start, far_side, 1.3, car) is clear

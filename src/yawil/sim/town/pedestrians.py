@@ -1,7 +1,11 @@
 """Pedestrians: random walks on the walkway graph, crossing at crosswalks and sometimes anywhere.
 
-They stop for nothing (the expert must stop for them). Jaywalking: while on a sidewalk along a road, each
-step a pedestrian may, with a small seeded probability, cross straight over the road to the other sidewalk.
+Jaywalking: while on a sidewalk along a road, each step a pedestrian may, with a small seeded probability,
+cross straight over the road to the other sidewalk. Like real pedestrians they do not walk into cars: one
+steps onto the road (a crosswalk or a jaywalk) only when no vehicle, nor the ego, stands on its crossing
+or would reach it within the time the crossing takes, and on the road it stops rather than step into a
+vehicle; stopped there for a few seconds (a car pulled up across its way), it turns back to the kerb it
+came from. They do not watch for cars that come after they started: drivers (and the expert) must stop.
 """
 
 from __future__ import annotations
@@ -13,6 +17,10 @@ from yawil.sim.town.walkways import Walkways
 PED_COLORS = ((0.2, 0.2, 0.5), (0.6, 0.1, 0.1), (0.1, 0.4, 0.2), (0.3, 0.3, 0.3), (0.7, 0.6, 0.2), (0.5, 0.3, 0.5))
 SIZE = 0.6  # footprint, metres square
 HEIGHT = 1.75
+CLEARANCE = 1.0  # metres kept from any vehicle's box when deciding to cross
+CONTACT = SIZE / 2 + 0.2  # on the road, a step that would come this close to a vehicle's box is not taken
+HORIZON_EXTRA = 2.0  # seconds added to the crossing time when checking approaching vehicles
+GIVE_UP_S = 4.0  # stopped on the road this long: turn back
 
 
 class Pedestrians:
@@ -33,6 +41,9 @@ class Pedestrians:
         self.speed = np.zeros(n)
         self.yaw = np.zeros(n)
         self.on_road = np.zeros(n, dtype=bool)
+        self.kerb = np.zeros(n, dtype=bool)  # waiting at a kerb for a clear crosswalk
+        self.back = np.zeros((n, 2))  # where a jaywalker left its sidewalk (to turn back to)
+        self.stopped = np.zeros(n)  # seconds stopped on the road
         self.color_index = np.zeros(n, dtype=np.int64)
         self.ids = np.arange(10001, 10001 + n)
 
@@ -67,31 +78,111 @@ class Pedestrians:
             self.yaw[i] = np.arctan2(d[1], d[0])
             placed += 1
 
-    def step(self, dt: float, rng: np.random.Generator) -> None:
+    @staticmethod
+    def _crossing_clear(p: np.ndarray, q: np.ndarray, speed: float, actors: np.ndarray) -> bool:
+        """True if no actor's box, swept along its heading over the crossing's duration, meets segment p-q.
+
+        `actors` rows: (x, y, yaw, length, width, speed). A vehicle's path is taken as straight over these few
+        seconds; that is all a pedestrian at the kerb can judge, and drivers stop for what they missed.
+        """
+        if not len(actors):
+            return True
+        seg = q - p
+        span = float(np.hypot(seg[0], seg[1]))
+        if span < 1e-6:
+            return True
+        u = seg / span
+        n = np.array([-u[1], u[0]])
+        x, y, yaw, length, width, speed_a = actors.T
+        rx, ry = x - p[0], y - p[1]
+        a = rx * u[0] + ry * u[1]  # along the crossing
+        b = rx * n[0] + ry * n[1]  # across it (the crossing line is b = 0)
+        c, s = np.cos(yaw), np.sin(yaw)
+        hu = length / 2 * np.abs(c * u[0] + s * u[1]) + width / 2 * np.abs(-s * u[0] + c * u[1])
+        hn = length / 2 * np.abs(c * n[0] + s * n[1]) + width / 2 * np.abs(-s * n[0] + c * n[1])
+        horizon = span / max(speed, 0.1) + HORIZON_EXTRA
+        va = speed_a * (c * u[0] + s * u[1]) * horizon  # displacement over the horizon
+        vb = speed_a * (c * n[0] + s * n[1]) * horizon
+        margin = CLEARANCE + SIZE / 2
+        a_lo, a_hi = np.minimum(a, a + va) - hu - margin, np.maximum(a, a + va) + hu + margin
+        b_lo, b_hi = np.minimum(b, b + vb) - hn - margin, np.maximum(b, b + vb) + hn + margin
+        meets = (a_hi > 0.0) & (a_lo < span) & (b_hi > 0.0) & (b_lo < 0.0)
+        return not bool(meets.any())
+
+    @staticmethod
+    def _box_distance(xy: np.ndarray, actors: np.ndarray) -> np.ndarray:
+        """(P, M) distance from points to actor boxes (0 inside)."""
+        x, y, yaw, length, width = (actors[:, k] for k in range(5))
+        rx, ry = xy[:, None, 0] - x[None, :], xy[:, None, 1] - y[None, :]
+        c, s = np.cos(yaw)[None, :], np.sin(yaw)[None, :]
+        lon = np.maximum(np.abs(rx * c + ry * s) - length[None, :] / 2, 0.0)
+        lat = np.maximum(np.abs(-rx * s + ry * c) - width[None, :] / 2, 0.0)
+        return np.hypot(lon, lat)
+
+    def _turn_back(self, i: int) -> None:
+        """Return to the kerb this pedestrian left: along its crosswalk, or straight back when jaywalking."""
+        walk = self.walk
+        if self.dest[i] < 0:
+            self.target[i] = self.back[i]
+            self.edge[i] = int(self.twin[self.edge[i]])
+        else:
+            self.dest[i], self.prev[i] = self.prev[i], self.dest[i]
+            self.target[i] = walk.xy[int(self.dest[i])]
+        self.stopped[i] = 0.0
+
+    def step(self, dt: float, rng: np.random.Generator, actors: np.ndarray | None = None) -> None:
+        """Advance dt. `actors`: (M, 6) rows (x, y, yaw, length, width, speed) of the vehicles and the ego."""
         if not self.n:
             return
         walk = self.walk
-        # jaywalk: leave a sidewalk edge along a road for the twin on the other side
+        actors = np.zeros((0, 6)) if actors is None else np.asarray(actors, dtype=np.float64).reshape(-1, 6)
+        # jaywalk: leave a sidewalk edge along a road for the twin on the other side, if the road is clear
         draw = rng.random(self.n)
-        jay = (draw < self.jaywalk_per_s * dt) & (self.dest >= 0) & (self.twin[self.edge] >= 0)
+        jay = (draw < self.jaywalk_per_s * dt) & (self.dest >= 0) & (self.twin[self.edge] >= 0) & ~self.on_road
         for i in np.flatnonzero(jay).tolist():
             e = int(self.twin[self.edge[i]])
             a, b = walk.edges[e]
             pa, pb = walk.xy[a], walk.xy[b]
             u = pb - pa
             f = float(np.clip(np.dot(self.xy[i] - pa, u) / np.dot(u, u), 0.0, 1.0))
-            self.target[i] = pa + f * u
+            target = pa + f * u
+            if not self._crossing_clear(self.xy[i], target, float(self.speed[i]), actors):
+                continue
+            self.back[i] = self.xy[i]
+            self.target[i] = target
             self.dest[i], self.edge[i] = -1, e
             self.on_road[i] = True
+        # at a kerb: step onto the crosswalk once it is clear
+        for i in np.flatnonzero(self.kerb).tolist():
+            if self._crossing_clear(self.xy[i], self.target[i], float(self.speed[i]), actors):
+                self.kerb[i] = False
+                self.on_road[i] = True
         d = self.target - self.xy
         dist = np.hypot(d[:, 0], d[:, 1])
         stride = self.speed * dt
-        arrived = dist <= stride
-        moving = ~arrived & (dist > 0)
-        self.xy[moving] += d[moving] * (stride[moving] / dist[moving])[:, None]
+        arrived = (dist <= stride) & ~self.kerb
+        moving = ~arrived & (dist > 0) & ~self.kerb
+        step = np.zeros_like(d)
+        step[moving] = d[moving] * (stride[moving] / dist[moving])[:, None]
+        # on the road: do not step into a vehicle (nor the ego)
+        road = np.flatnonzero(self.on_road & (moving | arrived))
+        if len(road) and len(actors):
+            nxt = self.xy[road] + np.where(arrived[road, None], d[road], step[road])
+            now_d = self._box_distance(self.xy[road], actors[:, :5])
+            nxt_d = self._box_distance(nxt, actors[:, :5])
+            into = np.any((nxt_d < CONTACT) & (nxt_d < now_d), axis=1)
+            held = road[into]
+            moving[held] = False
+            arrived[held] = False
+            self.stopped[held] += dt
+            self.stopped[road[~into]] = 0.0
+            for i in held[self.stopped[held] >= GIVE_UP_S].tolist():
+                self._turn_back(i)
+        self.xy[moving] += step[moving]
         self.yaw[moving] = np.arctan2(d[moving, 1], d[moving, 0])
         for i in np.flatnonzero(arrived).tolist():
             self.xy[i] = self.target[i]
+            self.stopped[i] = 0.0
             if self.dest[i] < 0:  # finished jaywalking: walk on along the twin edge, either way
                 a, b = walk.edges[int(self.edge[i])]
                 nxt, prev = (int(b), int(a)) if rng.random() < 0.5 else (int(a), int(b))
@@ -103,5 +194,6 @@ class Pedestrians:
                 nxt = options[int(rng.integers(len(options)))]
                 self.prev[i], self.dest[i] = here, nxt
                 self.edge[i] = walk.edge_of[(here, nxt)]
-                self.on_road[i] = bool(self.is_crosswalk[self.edge[i]])
+                self.on_road[i] = False
+                self.kerb[i] = bool(self.is_crosswalk[self.edge[i]])  # step onto it next step, once clear
             self.target[i] = walk.xy[int(self.dest[i])]

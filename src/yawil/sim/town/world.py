@@ -146,7 +146,11 @@ class EmbeddedWorld:
         self.vehicles.step(DT, self._rng, codes, (self.ego.x, self.ego.y, self.ego.yaw, self.ego.speed),
                            (self.params.length, self.params.width), self._ego_connectors(), ped_road,
                            self._ego_road_lane())
-        self.pedestrians.step(DT, self._rng)
+        veh = self.vehicles
+        actors = np.empty((veh.n + 1, 6))
+        actors[:-1] = np.stack([veh.x, veh.y, veh.yaw, veh.length, veh.width, veh.v], 1) if veh.n else actors[:0]
+        actors[-1] = (self.ego.x, self.ego.y, self.ego.yaw, self.params.length, self.params.width, self.ego.speed)
+        self.pedestrians.step(DT, self._rng, actors)
         events = self._criteria(prev)
         return self._observe(tuple(events))
 

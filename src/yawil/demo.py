@@ -1,0 +1,260 @@
+"""`yawil demo` (what `make demo` runs): the whole loop at a small scale on the embedded simulator.
+
+collect (town01, training weathers) -> train YILRatt (a small budget) -> benchmark it and the expert on a
+subset of routes in both conditions -> heat maps and one episode video -> report.html / report.md.
+
+Every stage writes its output under `--out` and marks itself done, so running the demo again after a stop
+resumes where it was (collection and training resume mid-way; the benchmark resumes per episode).
+The budget is the `DemoBudget` below, printed at the start and written into the report.
+"""
+
+from __future__ import annotations
+
+import argparse
+import base64
+import html
+import json
+import time
+from dataclasses import asdict, dataclass
+from pathlib import Path
+from typing import Any
+
+
+@dataclass(frozen=True)
+class DemoBudget:
+    """The demo's small scale (the paper's is in `yawil reproduce --profile paper`)."""
+
+    frames: int = 6000  # collected in town01, training weathers, with the paper's steering noise
+    collect_workers: int = 2
+    model: str = "yilratt"
+    batch_size: int = 64
+    lr: float = 1e-3
+    lr_step_epochs: int = 4
+    epochs: int = 12
+    max_steps: int = 700  # optimiser steps in all (about 45k samples)
+    max_minutes: float = 9.0  # wall-time cap of one training invocation
+    tasks: tuple[str, ...] = ("straight", "one_turn")
+    routes: str = "0:3"  # route ids per task and condition
+    expert_tasks: tuple[str, ...] = ("straight", "one_turn", "navigation", "regular")
+    seeds: int = 1
+    bench_workers: int = 2
+    explain_frames: int = 6
+    video_steps: int = 200
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:  # type: ignore[type-arg]
+    p = subparsers.add_parser(
+        "demo",
+        help="the whole loop at a small scale -> OUT/report.html",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    p.add_argument("--out", default="runs/demo", help="output folder (default runs/demo)")
+    p.add_argument("--seed", type=int, default=0, help="seed of collection, training and benchmark (default 0)")
+    p.add_argument("--frames", type=int, default=DemoBudget.frames, help=f"frames to collect (default {DemoBudget.frames})")
+    p.add_argument("--max-steps", type=int, default=DemoBudget.max_steps, help=f"training steps (default {DemoBudget.max_steps})")
+    p.add_argument("--max-minutes", type=float, default=DemoBudget.max_minutes, help="wall-time cap of training")
+    p.add_argument("--routes", default=DemoBudget.routes, help=f"benchmark route ids per task (default {DemoBudget.routes})")
+    p.add_argument("--video-steps", type=int, default=DemoBudget.video_steps, help="steps of the explained episode")
+    return p
+
+
+def run(args: argparse.Namespace) -> int:
+    budget = DemoBudget(
+        frames=args.frames,
+        max_steps=args.max_steps,
+        max_minutes=args.max_minutes,
+        routes=args.routes,
+        video_steps=args.video_steps,
+    )
+    run_demo(Path(args.out), budget, seed=args.seed)
+    return 0
+
+
+def _say(msg: str) -> None:
+    print(f"[demo {time.strftime('%H:%M:%S')}] {msg}", flush=True)
+
+
+def _stage(out: Path, name: str) -> Path:
+    return out / "stages" / f"{name}.json"
+
+
+def _done(out: Path, name: str) -> dict[str, Any] | None:
+    p = _stage(out, name)
+    return json.loads(p.read_text()) if p.is_file() else None
+
+
+def _mark(out: Path, name: str, info: dict[str, Any]) -> None:
+    p = _stage(out, name)
+    p.parent.mkdir(parents=True, exist_ok=True)
+    tmp = p.with_suffix(".tmp")
+    tmp.write_text(json.dumps(info, indent=1))
+    tmp.replace(p)
+
+
+def run_demo(out: Path, budget: DemoBudget, seed: int = 0) -> Path:
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    _say(f"budget: {json.dumps(asdict(budget))}")
+    data = out / "data" / "town01"
+    run_dir = out / "yilratt"
+    timings: dict[str, float] = {}
+
+    # 1. collect
+    info = _done(out, "collect")
+    if info is None:
+        from yawil.data.collect import collect
+
+        _say(f"1/5 collecting {budget.frames} expert frames in town01 (training weathers) -> {data}")
+        t = time.perf_counter()
+        summary = collect(data, town="town01", weathers="train", frames=budget.frames,
+                          workers=budget.collect_workers, seed=seed)  # fmt: skip
+        info = {"seconds": time.perf_counter() - t, "frames": summary.dataset_frames}
+        _mark(out, "collect", info)
+    timings["collect"] = info["seconds"]
+
+    # 2. train
+    info = _done(out, "train")
+    if info is None:
+        from yawil.train import TrainConfig, train
+
+        _say(f"2/5 training {budget.model} for at most {budget.max_steps} steps / {budget.max_minutes} min -> {run_dir}")
+        t = time.perf_counter()
+        cfg = TrainConfig(
+            model=budget.model, data=[str(data)], out=str(run_dir), epochs=budget.epochs,
+            batch_size=budget.batch_size, lr=budget.lr, lr_step_epochs=budget.lr_step_epochs,
+            max_steps=budget.max_steps, max_minutes=budget.max_minutes, seed=seed, workers=2,
+        )  # fmt: skip
+        result = train(cfg, resume=(run_dir / "last.pt").is_file())
+        info = {"seconds": time.perf_counter() - t, "steps": result.steps, "epochs": result.epochs_done,
+                "best_val": result.best_val, "stopped_by": result.stopped_by}  # fmt: skip
+        _mark(out, "train", info)
+    timings["train"] = info["seconds"]
+    train_info = info
+
+    # 3. benchmark the expert and the trained agent on a subset of routes, both conditions
+    info = _done(out, "bench")
+    if info is None:
+        from yawil.bench.runner import AgentSpec, run_benchmark
+        from yawil.bench.suites import episodes
+
+        t = time.perf_counter()
+        conds = ["training", "new-town-weather"]
+        for label, spec, tasks in (
+            ("expert", AgentSpec("expert"), budget.expert_tasks),
+            ("yilratt", AgentSpec(str(run_dir / "best.pt")), budget.tasks),
+        ):
+            eps = episodes("all", conds, list(tasks), routes=budget.routes, seeds=budget.seeds)
+            _say(f"3/5 benchmark: {label} on {len(eps)} episodes ({', '.join(tasks)}; routes {budget.routes})")
+            run_benchmark(eps, spec, out / "results" / label, workers=budget.bench_workers, label=label)
+        info = {"seconds": time.perf_counter() - t}
+        _mark(out, "bench", info)
+    timings["bench"] = info["seconds"]
+
+    # 4. heat maps and a video
+    info = _done(out, "explain")
+    if info is None:
+        from yawil.agent import Agent
+        from yawil.explain_cli import explain_episode, explain_frames
+
+        t = time.perf_counter()
+        _say("4/5 attention heat maps on dataset frames and one town02 episode video")
+        agent = Agent.from_checkpoint(run_dir / "best.pt")
+        explain_frames(agent, data, out / "explain", budget.explain_frames, seed, 0.5)
+        ep_args = argparse.Namespace(route="one_turn:0", condition="new-town-weather", town="town02",
+                                     weather="SoftRainSunset", vehicles=0, pedestrians=0, seed=seed,
+                                     steps=budget.video_steps, every=2, alpha=0.5)  # fmt: skip
+        video = explain_episode(agent, out / "explain", ep_args)
+        info = {"seconds": time.perf_counter() - t, "video": video.name}
+        _mark(out, "explain", info)
+    timings["explain"] = info["seconds"]
+    video_name = info["video"]
+
+    # 5. report
+    _say("5/5 report")
+    report = write_demo_report(out, budget, timings, train_info, video_name, time.perf_counter() - t0)
+    _say(f"done: {report} (this invocation {time.perf_counter() - t0:.0f} s)")
+    return report
+
+
+def write_demo_report(out: Path, budget: DemoBudget, timings: dict[str, float], train_info: dict[str, Any],
+                      video_name: str, wall_s: float) -> Path:  # fmt: skip
+    from yawil.bench.report import write_report
+    from yawil.data.stats import write_stats
+
+    bench = write_report([out / "results" / "expert", out / "results" / "yilratt"], out / "bench_report")
+    stats_png = write_stats(out / "data" / "town01", out / "data_stats.png")
+    bench_md = bench["report.md"].read_text(encoding="utf-8").split("\n", 1)[1]
+    pictures = [("Dataset (the paper's Figure 7)", stats_png), ("Loss curve", out / "yilratt" / "loss.png"),
+                ("Attention heat maps on dataset frames (Figure 8)", out / "explain" / "grid.png")]  # fmt: skip
+    for name in sorted(p.name for p in (out / "bench_report").glob("*.png")):
+        pictures.append((name.removesuffix(".png").replace("_", " "), out / "bench_report" / name))
+    budget_rows = "\n".join(f"| {k} | {v} |" for k, v in asdict(budget).items())
+    time_rows = "\n".join(f"| {k} | {v:.0f} |" for k, v in timings.items())
+    md = [
+        "# yawil demo report",
+        "",
+        "The whole loop at a small scale on the embedded simulator: expert data in town01 (training weathers), "
+        "YILRatt trained on it, the expert and the agent benchmarked on a subset of routes in both conditions, "
+        "attention heat maps. These are honest small-budget numbers, not the paper's: see the budget below.",
+        "",
+        f"Training: {train_info.get('steps')} steps, {train_info.get('epochs')} epochs, best validation loss "
+        f"{train_info.get('best_val', float('nan')):.4f}, stopped by {train_info.get('stopped_by')}.",
+        "",
+        bench_md,
+        "## Budget",
+        "",
+        "| setting | value |",
+        "| --- | --- |",
+        budget_rows,
+        "",
+        "## Wall time per stage (seconds, first run of each stage)",
+        "",
+        "| stage | seconds |",
+        "| --- | --- |",
+        time_rows,
+        "",
+        f"Episode video with heat maps: [explain/{video_name}](explain/{video_name})",
+        "",
+    ]
+    for title, path in pictures:
+        if Path(path).is_file():
+            md.append(f"![{title}]({Path(path).relative_to(out)})\n")
+    _write(out / "report.md", "\n".join(md))
+
+    bench_html = bench["report.html"].read_text(encoding="utf-8")
+    body = bench_html.split("<body>", 1)[1].rsplit("</body>", 1)[0].replace("<h1>Benchmark report</h1>", "<h2>Benchmark</h2>")
+    style = bench_html.split("<style>", 1)[1].split("</style>", 1)[0] if "<style>" in bench_html else ""
+    parts = [
+        "<h1>yawil demo report</h1>",
+        f"<p>{html.escape(md[2])}</p>",
+        f"<p>{html.escape(md[4])}</p>",
+        body,
+        "<h2>Budget</h2><table><tr><th>setting</th><th>value</th></tr>"
+        + "".join(f"<tr><td>{html.escape(k)}</td><td>{html.escape(str(v))}</td></tr>" for k, v in asdict(budget).items())
+        + "</table>",
+        "<h2>Wall time per stage (seconds)</h2><table><tr><th>stage</th><th>seconds</th></tr>"
+        + "".join(f"<tr><td>{k}</td><td>{v:.0f}</td></tr>" for k, v in timings.items())
+        + "</table>",
+    ]
+    for title, path in pictures[:3]:
+        if Path(path).is_file():
+            b64 = base64.b64encode(Path(path).read_bytes()).decode("ascii")
+            parts.append(f"<h3>{html.escape(title)}</h3><img alt='{html.escape(title)}' src='data:image/png;base64,{b64}'>")
+    video = out / "explain" / video_name
+    if video.is_file():
+        mime = "video/mp4" if video.suffix == ".mp4" else "image/gif"
+        b64 = base64.b64encode(video.read_bytes()).decode("ascii")
+        tag = (f"<video controls loop src='data:{mime};base64,{b64}'></video>" if mime == "video/mp4"
+               else f"<img alt='episode' src='data:{mime};base64,{b64}'>")  # fmt: skip
+        parts.append(f"<h3>A town02 episode with the attention heat maps (Figure 9)</h3>{tag}")
+    page = (f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>yawil demo report</title>"
+            f"<style>{style}</style></head><body>{''.join(parts)}</body></html>\n")  # fmt: skip
+    _write(out / "report.html", page)
+    return out / "report.html"
+
+
+def _write(path: Path, text: str) -> None:
+    tmp = path.with_name(f".{path.name}.tmp")
+    tmp.write_text(text, encoding="utf-8")
+    tmp.replace(path)

@@ -253,6 +253,12 @@ class CarlaWorld:
             raise CarlaSetupError(f"CARLA server at {self.address} has no map {town}; it has {', '.join(sorted(available))}")
         self._world = self._client.load_world(town)
 
+    def topology_of(self, town: str) -> CarlaTopology:
+        """The planner's topology of a CARLA map (Town01, ...), loading it on the server if needed."""
+        with self._guard("loading the map"):
+            self._load(town)
+            return self._topology(town)
+
     def _topology(self, town: str) -> CarlaTopology:
         if town not in self._topologies:
             lights = list(self._world.get_actors().filter("traffic.traffic_light"))

@@ -1,0 +1,124 @@
+"""Benchmark route files for CARLA's Town01 and Town02, and their generator.
+
+Same format as yawil's own route files (`yawil-routes/1`: 25 routes per task list straight, one_turn,
+navigation, start and goal as map coordinates in yawil's frame), so `yawil.bench.suites.load_routes(town,
+folder=CARLA_ROUTES_DIR)` reads them. They can only be made from the real map, so from a live server:
+`python -m yawil.sim.carla.routes --host HOST --port 2000 --town town01` (see docs/carla.md). The rules
+are the embedded towns' (yawil.bench.routegen): routes are drawn as walks on the topology, re-planned from
+their end points exactly as CarlaWorld will plan them, and classified by `yawil.bench.routegen.classify`.
+A generated file is validated against the server's map: every start and goal snaps to a driving lane
+within 2 m and every goal is reachable. (This tool imports yawil.bench lazily: it writes benchmark data.)
+"""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from yawil.sim.carla.topology import CarlaTopology
+from yawil.sim.types import Pose, RoadOption, Route
+
+CARLA_ROUTES_DIR = Path(__file__).parent
+SNAP_TOLERANCE_M = 2.0
+TOWNS = ("town01", "town02")
+
+
+def _endpoints(route: Route) -> tuple[Pose, Pose]:
+    xy, yaw = route.xy, route.lane_yaw
+    return Pose(float(xy[0, 0]), float(xy[0, 1]), float(yaw[0])), Pose(float(xy[-1, 0]), float(xy[-1, 1]), float(yaw[-1]))
+
+
+def _walk(topo: CarlaTopology, rng: np.random.Generator, want: str) -> Route | None:
+    """A candidate: a road segment followed through 0-3 junctions, straight only or with one LEFT/RIGHT."""
+    roads = [i for i, s in enumerate(topo.segments) if not s.junction and s.length > 5.0]
+    seq = [roads[int(rng.integers(len(roads)))]]
+    for _ in range(int(rng.integers(0, 4)) * 3):
+        succ = [int(d["segment"]) for _, _, d in topo.graph.out_edges(topo.segments[seq[-1]].exit, data=True)]
+        if not succ:
+            break
+        seq.append(succ[int(rng.integers(len(succ)))])
+    while len(seq) > 1 and topo.segments[seq[-1]].junction:
+        seq.pop()
+    turns = [o for o in topo.turn_decisions(seq) if o in (RoadOption.LEFT, RoadOption.RIGHT)]
+    if (want == "straight" and turns) or (want == "one_turn" and len(turns) != 1):
+        return None
+    first, last = topo.segments[seq[0]], topo.segments[seq[-1]]
+    ss, sg = float(rng.uniform(0.05, 0.5) * first.length), float(rng.uniform(0.5, 0.95) * last.length)
+    if len(seq) == 1 and sg <= ss + 1.0:
+        return None
+    return topo.sample(seq, ss, sg).route
+
+
+def generate_routes(topo: CarlaTopology, town: str, seed: int = 0, per_task: int | None = None) -> dict[str, list[Any]]:
+    """Route lists straight, one_turn, navigation for a CARLA town, drawn on its topology from the seed."""
+    from yawil.bench.routegen import classify
+    from yawil.bench.suites import MIN_LENGTH, ROUTES_PER_TASK, RouteSpec
+
+    if town not in TOWNS:
+        raise ValueError(f"no route rules for CARLA town {town!r}; choose one of {', '.join(TOWNS)}")
+    n = per_task or ROUTES_PER_TASK
+    rng = np.random.default_rng(seed)
+    out: dict[str, list[Any]] = {}
+    for kind in ("straight", "one_turn", "navigation"):
+        minimum = MIN_LENGTH[town][kind]
+        specs: list[Any] = []
+        seen: set[tuple[int, int, int, int]] = set()
+        for _ in range(20000):
+            cand = topo.random_route(rng, minimum).route if kind == "navigation" else _walk(topo, rng, kind)
+            if cand is None:
+                continue
+            start, goal = _endpoints(cand)
+            route = topo.plan(start, goal).route  # what CarlaWorld will drive
+            got, names = classify(route)
+            if route.length < minimum or (kind != "navigation" and got != kind):
+                continue
+            cell = (round(start.x / 10), round(start.y / 10), round(goal.x / 10), round(goal.y / 10))
+            if cell in seen:
+                continue
+            seen.add(cell)
+            specs.append(RouteSpec(len(specs), start, goal, round(route.length, 2), names))
+            if len(specs) == n:
+                break
+        else:
+            raise ValueError(f"could not draw {n} {kind} routes of >= {minimum:.0f} m on CARLA {town}; got {len(specs)}")
+        out[kind] = specs
+    return out
+
+
+def validate_routes(topo: CarlaTopology, lists: dict[str, list[Any]], where: str) -> None:
+    """Every start/goal snaps to a driving lane within 2 m and every goal is reachable: ValueError otherwise."""
+    for name, specs in lists.items():
+        for spec in specs:
+            for end, pose in (("start", spec.start), ("goal", spec.goal)):
+                d = topo.snap(pose)[2]
+                if d > SNAP_TOLERANCE_M:
+                    raise ValueError(f"{where}: routes.{name}[{spec.id}].{end} {pose} is {d:.1f} m from the nearest driving "
+                                     f"lane of map {topo.name!r} (at most {SNAP_TOLERANCE_M} m allowed)")
+            length = topo.plan(spec.start, spec.goal).route.length
+            if not math.isclose(length, spec.length_m, rel_tol=0.01, abs_tol=1.0):
+                raise ValueError(f"{where}: routes.{name}[{spec.id}] is {length:.1f} m on this map, the file says "
+                                 f"{spec.length_m:.1f} m (a different map version?)")
+
+
+def write_route_file(topo: CarlaTopology, town: str, seed: int = 0, folder: Path | None = None,
+                     per_task: int | None = None) -> Path:
+    """Generate, check and atomically write `<folder>/<town>.json` (default: this package's folder)."""
+    from yawil.bench.records import write_json_atomic
+    from yawil.bench.suites import ROUTE_FORMAT, check_task_routes
+
+    lists = generate_routes(topo, town, seed, per_task)
+    if per_task is None:
+        for name, specs in lists.items():
+            check_task_routes(town, name, specs, f"generated CARLA {town}.{name}")
+    validate_routes(topo, lists, f"generated CARLA {town}")
+    path = (folder or CARLA_ROUTES_DIR) / f"{town}.json"
+    write_json_atomic(path, {
+        "format": ROUTE_FORMAT, "town": town, "map": topo.name,
+        "generated_by": f"python -m yawil.sim.carla.routes --town {town} --seed {seed}",
+        "rules": "docs/benchmark.md#routes",
+        "routes": {name: [s.to_json() for s in specs] for name, specs in lists.items()},
+    })
+    return path

@@ -26,6 +26,7 @@ def test_dense_traffic_keeps_the_rules() -> None:
     assert not boxes_overlap(ego, boxes).any()  # never spawned on the ego
     start = veh.x.copy(), veh.y.copy()
     regions = w.town.regions  # type: ignore[union-attr]
+    exit_lanes = np.array([ln.id for ln in lanes.lanes[: lanes.n_road_lanes] if lanes.degree[ln.start_node] >= 3])
     for _ in range(400):
         lane_before, front_before = veh.lane.copy(), veh.s + veh.length / 2
         w.step(Control(brake=1.0))
@@ -41,6 +42,11 @@ def test_dense_traffic_keeps_the_rules() -> None:
         # at most one of any conflicting pair of junction connectors is in use
         on = np.unique(veh.lane[veh.lane >= lanes.n_road_lanes])
         assert not lanes.conflict[np.ix_(on, on)].any()
+        # don't block the box: what is on a junction's exit lane or queued towards it fits on that lane
+        conn = veh.lane >= lanes.n_road_lanes
+        load = np.bincount(np.where(conn, veh.exit_of[veh.lane], veh.lane), weights=veh.length + veh.S0,
+                           minlength=len(lanes.lanes))
+        assert np.all(load[exit_lanes] <= lanes.length[exit_lanes] + 1e-6)
         # pedestrians stay on walkways (sidewalks, crosswalks, or the road while jaywalking)
         assert not np.any(regions.query(ped.xy[:, 0], ped.xy[:, 1]) == GROUND)
     moved = np.hypot(veh.x - start[0], veh.y - start[1])
@@ -162,3 +168,30 @@ def test_jaywalker_does_not_step_in_front_of_or_into_a_standing_ego() -> None:
         x, y = mid - dist * u / np.hypot(*u)
         car = np.array([[x, y, heading, 4.5, 1.8, 8.0]])
         assert Pedestrians._crossing_clear(start, far_side, 1.3, car) is clear
+
+
+def test_no_vehicle_enters_a_junction_without_room_after_it() -> None:
+    """Finding 2 (town02 seed 0): vehicles entered connectors onto the full 20 m block between x = 90 and 110 m."""
+    lanes = get_town("town02").lanes
+    exit_lane = 10  # 20 m, from the junction at x = 90 to the one at x = 110
+    conn = next(c for c in lanes.node_connectors[lanes.lanes[exit_lane].start_node] if lanes.lanes[c].exit == exit_lane)
+    entry = lanes.lanes[conn].entry
+    veh = Vehicles(lanes)
+    veh._alloc(3)
+    # two cars on the block, not yet at its end, and one arriving
+    veh.lane[:] = (exit_lane, exit_lane, entry)
+    veh.s[:] = (17.5, 11.0, lanes.length[entry] - 12.0)
+    veh.v[:] = (1.0, 1.0, 6.0)
+    veh.v0[:] = (0.01, 0.01, 8.0)  # the two come to a halt there (as behind a queue at the next junction)
+    veh.nxt1[:] = [lanes.lanes[exit_lane].successors[0]] * 2 + [conn]
+    veh.nxt2[:] = [lanes.lanes[int(n)].successors[0] for n in veh.nxt1]
+    veh.length[:], veh.width[:] = 4.5, 1.8
+    veh._update_pose()
+    assert veh._exit_room((-1, 0.0), 4.6)[exit_lane] < 4.5 + veh.S0 + 1.0  # two cars' queue leaves no room
+    codes = np.full(len(lanes.approaches), RED, dtype=np.int64)
+    codes[lanes.light_of_lane[entry]] = 0  # green for the arriving car, red ahead of the two on the block
+    far = (1e4, 1e4, 0.0, 0.0)
+    for _ in range(200):
+        veh.step(0.1, np.random.default_rng(0), codes, far, (4.6, 1.9), np.zeros(0, dtype=np.int64), np.zeros((0, 2)))
+        assert veh.lane[2] == entry  # it waits before the box, although the block's start looked free
+    assert veh.v[2] < 0.05

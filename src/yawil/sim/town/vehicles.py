@@ -105,19 +105,24 @@ class Vehicles:
             self.x, self.y, self.yaw = self.lanes.lookup(self.lane, self.s)
 
     def _exit_room(self, ego_on_lane: tuple[int, float], ego_length: float) -> np.ndarray:
-        """Free metres at the start of each lane, minus what is already queued in the junctions towards it.
+        """Free metres on each lane for one more vehicle, minus what is already queued in the junctions towards it.
 
         A vehicle enters a junction only if its exit lane has room for it ("don't block the box"), which keeps
-        dense traffic from gridlocking.
+        dense traffic from gridlocking. Room is the smaller of the free metres at the lane's start now and
+        the lane's length minus the queue everything on it would form if it stopped (length + standstill gap
+        each): a lane whose vehicles still move looks free at its start but fills up once they queue at the
+        next junction, and a vehicle that entered on the first measure would then stand in the box.
         """
         L = self.lanes.length
         first = L.copy()
         np.minimum.at(first, self.lane, self.s - self.length / 2)
+        used = np.bincount(self.lane, weights=self.length + self.S0, minlength=len(L))
         if ego_on_lane[0] >= 0:
             first[ego_on_lane[0]] = min(first[ego_on_lane[0]], ego_on_lane[1] - ego_length / 2)
+            used[ego_on_lane[0]] += ego_length + self.S0
         conn = self.lane >= self.lanes.n_road_lanes
         queued = np.bincount(self.exit_of[self.lane[conn]], weights=self.length[conn] + self.S0, minlength=len(L))
-        return first - queued
+        return np.minimum(first, L - used) - queued
 
     def occupied(self, extra: np.ndarray) -> np.ndarray:
         """Connector occupancy (bool per lane): vehicles on connectors plus `extra` lane ids (the ego)."""
@@ -177,6 +182,8 @@ class Vehicles:
         room = self._exit_room(ego_on_lane, ego_size[0])
         blocked = gate & (np.any(lanes.conflict[self.nxt1] & occ[None, :], axis=1)
                           | (room[self.exit_of[self.nxt1]] < self.length + self.S0 + 1.0))
+        # past its stop line, a blocked vehicle still waits at the junction's entry (step 5 holds it there)
+        g_stop = np.where(blocked & (g_stop <= -1.0), rem - half, g_stop)
         stop = (must_stop & (light >= 0) | blocked) & (g_stop > -1.0)
         closer = stop & (g_stop < gap)
         gap = np.where(closer, g_stop, gap)
@@ -192,11 +199,15 @@ class Vehicles:
         self.v = v_new
         self.s = s_new
         # 5. lane changes at lane ends (few per step: a plain loop)
+        # Entering a junction re-checks both rules against those who got in earlier this step.
         for i in np.flatnonzero(s_new > L[lane]).tolist():
             nxt = int(self.nxt1[i])
-            if self.is_gate[nxt] and np.any(lanes.conflict[nxt] & occ):
-                self.s[i], self.v[i] = L[lane[i]], 0.0  # someone got in first this step: wait at the entry
+            if self.is_gate[nxt] and (np.any(lanes.conflict[nxt] & occ)
+                                      or room[self.exit_of[nxt]] < self.length[i] + self.S0 + 1.0):
+                self.s[i], self.v[i] = L[lane[i]], 0.0  # wait at the entry
                 continue
+            if nxt >= lanes.n_road_lanes:
+                room[self.exit_of[nxt]] -= self.length[i] + self.S0
             self.s[i] -= L[lane[i]]
             self.lane[i] = nxt
             self.nxt1[i] = self.nxt2[i]

@@ -8,6 +8,7 @@ import numpy as np
 
 from yawil.sim import Control, EventKind, Pose, Scenario
 from yawil.sim.criteria import boxes_overlap
+from yawil.sim.town.lanes import LaneGraph
 from yawil.sim.town.lights import RED
 from yawil.sim.town.pedestrians import SIZE, Pedestrians
 from yawil.sim.town.regions import GROUND
@@ -130,6 +131,17 @@ def test_ego_can_hit_a_vehicle() -> None:
 
 
 # ---------------------------------------------------------------- regressions of the expert's findings
+def _one_vehicle(lanes: LaneGraph, lane: int, s: float, v: float, nxt1: int) -> Vehicles:
+    veh = Vehicles(lanes)
+    veh._alloc(1)
+    veh.lane[:], veh.s[:], veh.v[:], veh.v0[:] = lane, s, v, 8.0
+    veh.nxt1[:] = nxt1
+    veh.nxt2[:] = lanes.lanes[nxt1].successors[0]
+    veh.length[:], veh.width[:] = 4.5, 1.8
+    veh._update_pose()
+    return veh
+
+
 def test_jaywalker_does_not_step_in_front_of_or_into_a_standing_ego() -> None:
     """Finding 1 (town02 seeds 8, 20, 39, 40): a jaywalker crossed straight through the standing ego."""
     town = get_town("square")
@@ -195,3 +207,27 @@ def test_no_vehicle_enters_a_junction_without_room_after_it() -> None:
         veh.step(0.1, np.random.default_rng(0), codes, far, (4.6, 1.9), np.zeros(0, dtype=np.int64), np.zeros((0, 2)))
         assert veh.lane[2] == entry  # it waits before the box, although the block's start looked free
     assert veh.v[2] < 0.05
+
+
+def test_turning_vehicle_looks_along_its_own_path_for_the_ego() -> None:
+    """Finding 3 (town01 seed 20): a left-turning car stopped for the ego straight ahead of its bonnet."""
+    lanes = get_town("square").lanes
+    left = 58  # centre junction: from the south (lane 16, heading north) left to the west (lane 23)
+    entry = lanes.lanes[left].entry
+    green = np.zeros(len(lanes.approaches), dtype=np.int64)
+    none = np.zeros(0, dtype=np.int64)
+    # the ego stands 20 m straight ahead (on the crossing's straight connector), 1.5 m clear of the turn
+    veh = _one_vehicle(lanes, entry, lanes.length[entry] - 8.0, 5.0, left)
+    ego = (float(veh.x[0]), float(veh.y[0]) + 20.0, math.pi / 2, 0.0)
+    slowest = math.inf
+    for _ in range(60):
+        veh.step(0.1, np.random.default_rng(0), green, ego, (4.6, 1.9), none, np.zeros((0, 2)))
+        slowest = min(slowest, float(veh.v[0]))
+    assert veh.lane[0] == lanes.lanes[left].exit and slowest > 4.5  # turned at its turning speed
+    # the ego stands on the turn itself: the car stops short of it
+    (mx,), (my,), (myaw,) = lanes.lookup(np.array([left]), np.array([lanes.length[left] / 2]))
+    veh = _one_vehicle(lanes, entry, lanes.length[entry] - 8.0, 5.0, left)
+    for _ in range(100):
+        veh.step(0.1, np.random.default_rng(0), green, (mx, my, myaw, 0.0), (4.6, 1.9), none, np.zeros((0, 2)))
+    boxes = np.array([[veh.x[0], veh.y[0], veh.yaw[0], 4.5, 1.8]])
+    assert veh.v[0] < 0.05 and not boxes_overlap((mx, my, myaw, 4.6, 1.9), boxes).any()

@@ -2,8 +2,10 @@
 
 Each vehicle holds (lane, arc length, speed) and the next two lanes of its random route, drawn from the
 episode's generator whenever it moves on. Longitudinal control is the Intelligent Driver Model against the
-nearest of: the vehicle ahead on its path, the ego or a pedestrian in its corridor, a red/yellow stop line,
-or the stop line of a junction whose conflicting connector is occupied (the yielding rule).
+nearest of: the vehicle ahead on its path, the ego or a pedestrian on its path (its own lane polyline
+ahead, so a turning vehicle does not stop for what lies straight ahead of its bonnet), a red/yellow stop
+line, or the stop line of a junction it may not enter (a conflicting connector is occupied, or its exit
+lane has no room: the yielding and "don't block the box" rules).
 """
 
 from __future__ import annotations
@@ -12,6 +14,7 @@ import math
 
 import numpy as np
 
+from yawil.sim.criteria import boxes_overlap
 from yawil.sim.town.lanes import LaneGraph
 from yawil.sim.town.lights import GREEN, YELLOW
 from yawil.sim.types import RoadOption
@@ -28,7 +31,9 @@ class Vehicles:
     S0 = 2.5  # standstill gap, m
     T = 1.2  # time headway, s
     TURN_SPEED = 5.0
-    CORRIDOR = 30.0
+    CORRIDOR = 30.0  # how far along its path a vehicle looks for the ego
+    PED_CORRIDOR = 20.0  # ... and for pedestrians on the road
+    PATH_STEP = 1.0  # metres between the path samples (shorter than any vehicle, so nothing slips between)
 
     def __init__(self, lanes: LaneGraph) -> None:
         self.lanes = lanes
@@ -124,6 +129,72 @@ class Vehicles:
         queued = np.bincount(self.exit_of[self.lane[conn]], weights=self.length[conn] + self.S0, minlength=len(L))
         return np.minimum(first, L - used) - queued
 
+    def _path_points(self, idx: np.ndarray, ahead: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(x, y, yaw), each (len(idx), len(ahead)), of the centres of vehicles idx `ahead` metres along their path."""
+        L = self.lanes.length
+        lane1, lane2, lane3 = self.lane[idx, None], self.nxt1[idx, None], self.nxt2[idx, None]
+        a = self.s[idx, None] + ahead[None, :]
+        l1, l2 = L[lane1], L[lane2]
+        on2, on3 = a > l1, a > l1 + l2
+        lane = np.where(on3, lane3, np.where(on2, lane2, lane1))
+        a = np.where(on3, a - l1 - l2, np.where(on2, a - l1, a))
+        x, y, yaw = self.lanes.lookup(lane.ravel(), a.ravel())
+        shape = (len(idx), len(ahead))
+        return x.reshape(shape), y.reshape(shape), yaw.reshape(shape)
+
+    def _ego_on_path(self, ego: tuple[float, float, float, float], ego_size: tuple[float, float]
+                     ) -> tuple[np.ndarray, np.ndarray]:
+        """(gap, speed along the path) to the ego for each vehicle whose path ahead runs into it, else INF.
+
+        The vehicle's box (widened 0.4 m a side) is slid along its own lane polyline; the first position that
+        overlaps the ego gives the gap, measured in that position's frame so it is exact on straight lanes.
+        """
+        gap = np.full(self.n, INF)
+        lead_v = np.zeros(self.n)
+        ex, ey, eyaw, ev = ego
+        idx = np.flatnonzero(np.hypot(self.x - ex, self.y - ey) < self.CORRIDOR + 10.0)
+        if not len(idx):
+            return gap, lead_v
+        ahead = np.arange(0.0, self.CORRIDOR + self.PATH_STEP / 2, self.PATH_STEP)
+        px, py, pyaw = self._path_points(idx, ahead)
+        m, k = px.shape
+        boxes = np.stack([px.ravel(), py.ravel(), pyaw.ravel(), np.repeat(self.length[idx], k),
+                          np.repeat(self.width[idx] + 0.8, k)], 1)
+        hit = boxes_overlap((ex, ey, eyaw, ego_size[0], ego_size[1]), boxes).reshape(m, k)
+        c, sn = np.cos(pyaw), np.sin(pyaw)
+        lon = (ex - px) * c + (ey - py) * sn
+        rel = eyaw - pyaw
+        ext = ego_size[0] / 2 * np.abs(np.cos(rel)) + ego_size[1] / 2 * np.abs(np.sin(rel))
+        g = ahead[None, :] + lon - ext - self.length[idx, None] / 2
+        hit &= ahead[None, :] + lon > 0.0  # the ego is ahead, not beside or behind
+        first = np.argmax(hit, axis=1)
+        rows = np.flatnonzero(hit[np.arange(m), first])
+        sel = idx[rows]
+        gap[sel] = g[rows, first[rows]]
+        lead_v[sel] = max(ev, 0.0) * np.maximum(np.cos(rel[rows, first[rows]]), 0.0)
+        return gap, lead_v
+
+    def _pedestrians_on_path(self, ped_xy: np.ndarray) -> np.ndarray:
+        """Gap to the nearest on-road pedestrian along each vehicle's path (INF if none within PED_CORRIDOR)."""
+        gap = np.full(self.n, INF)
+        if not len(ped_xy):
+            return gap
+        d = np.hypot(self.x[:, None] - ped_xy[None, :, 0], self.y[:, None] - ped_xy[None, :, 1])
+        idx = np.flatnonzero(d.min(axis=1) < self.PED_CORRIDOR + 5.0)
+        if not len(idx):
+            return gap
+        ahead = np.arange(0.0, self.PED_CORRIDOR + self.PATH_STEP / 2, self.PATH_STEP)
+        px, py, pyaw = self._path_points(idx, ahead)
+        c, sn = np.cos(pyaw)[..., None], np.sin(pyaw)[..., None]
+        rx, ry = ped_xy[None, None, :, 0] - px[..., None], ped_xy[None, None, :, 1] - py[..., None]
+        lon, lat = rx * c + ry * sn, -rx * sn + ry * c
+        half = self.length[idx, None, None] / 2
+        along = ahead[None, :, None] + lon  # the pedestrian's arc distance along the path
+        hit = (np.abs(lat) < self.width[idx, None, None] / 2 + 0.9) & (np.abs(lon) <= half + 0.5) & (along > 0)
+        g = np.where(hit, along - half - 0.5, INF)
+        gap[idx] = g.min(axis=(1, 2))
+        return gap
+
     def occupied(self, extra: np.ndarray) -> np.ndarray:
         """Connector occupancy (bool per lane): vehicles on connectors plus `extra` lane ids (the ego)."""
         occ = np.zeros(len(self.lanes.lanes), dtype=bool)
@@ -152,26 +223,15 @@ class Vehicles:
         j = np.argmin(dist, axis=1)
         gap = dist[np.arange(self.n), j]
         lead_v = v[j]
-        # 2. the ego and pedestrians in the corridor ahead
-        c, sn = np.cos(self.yaw), np.sin(self.yaw)
-        ex, ey, eyaw, ev = ego
-        rx, ry = ex - self.x, ey - self.y
-        lon, lat = rx * c + ry * sn, -rx * sn + ry * c
-        in_path = (lon > 0) & (lon < self.CORRIDOR) & (np.abs(lat) < self.width / 2 + ego_size[1] / 2 + 0.4)
-        g_ego = np.where(in_path, lon - half - ego_size[0] / 2, INF)
+        # 2. the ego and pedestrians on the path ahead
+        g_ego, v_ego = self._ego_on_path(ego, ego_size)
         closer = g_ego < gap
         gap = np.where(closer, g_ego, gap)
-        lead_v = np.where(closer, max(ev, 0.0) * np.maximum(np.cos(eyaw - self.yaw), 0.0), lead_v)
-        if len(ped_xy):
-            px = ped_xy[None, :, 0] - self.x[:, None]
-            py = ped_xy[None, :, 1] - self.y[:, None]
-            plon = px * c[:, None] + py * sn[:, None]
-            plat = -px * sn[:, None] + py * c[:, None]
-            hit = (plon > 0) & (plon < 20.0) & (np.abs(plat) < (self.width / 2 + 0.9)[:, None])
-            g_ped = np.min(np.where(hit, plon, INF), axis=1) - half - 0.5
-            closer = g_ped < gap
-            gap = np.where(closer, g_ped, gap)
-            lead_v = np.where(closer, 0.0, lead_v)
+        lead_v = np.where(closer, v_ego, lead_v)
+        g_ped = self._pedestrians_on_path(ped_xy)
+        closer = g_ped < gap
+        gap = np.where(closer, g_ped, gap)
+        lead_v = np.where(closer, 0.0, lead_v)
         # 3. stop lines: lights, and junctions whose conflicting connector is occupied
         occ = self.occupied(ego_lanes)
         light = lanes.light_of_lane[lane]

@@ -167,9 +167,9 @@ class Pedestrians:
         # on the road: do not step into a vehicle (nor the ego)
         road = np.flatnonzero(self.on_road & (moving | arrived))
         if len(road) and len(actors):
-            nxt = self.xy[road] + np.where(arrived[road, None], d[road], step[road])
+            ahead_xy = self.xy[road] + np.where(arrived[road, None], d[road], step[road])
             now_d = self._box_distance(self.xy[road], actors[:, :5])
-            nxt_d = self._box_distance(nxt, actors[:, :5])
+            nxt_d = self._box_distance(ahead_xy, actors[:, :5])
             into = np.any((nxt_d < CONTACT) & (nxt_d < now_d), axis=1)
             held = road[into]
             moving[held] = False

@@ -14,6 +14,7 @@ import argparse
 import base64
 import html
 import json
+import re
 import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -185,10 +186,9 @@ def write_demo_report(out: Path, budget: DemoBudget, timings: dict[str, float], 
     bench = write_report([out / "results" / "expert", out / "results" / "yilratt"], out / "bench_report")
     stats_png = write_stats(out / "data" / "town01", out / "data_stats.png")
     bench_md = bench["report.md"].read_text(encoding="utf-8").split("\n", 1)[1]
+    bench_md = re.sub(r"\]\(([^)/]+\.png)\)", r"](bench_report/\1)", bench_md)  # its pictures live there
     pictures = [("Dataset (the paper's Figure 7)", stats_png), ("Loss curve", out / "yilratt" / "loss.png"),
                 ("Attention heat maps on dataset frames (Figure 8)", out / "explain" / "grid.png")]  # fmt: skip
-    for name in sorted(p.name for p in (out / "bench_report").glob("*.png")):
-        pictures.append((name.removesuffix(".png").replace("_", " "), out / "bench_report" / name))
     budget_rows = "\n".join(f"| {k} | {v} |" for k, v in asdict(budget).items())
     time_rows = "\n".join(f"| {k} | {v:.0f} |" for k, v in timings.items())
     md = [
@@ -237,7 +237,7 @@ def write_demo_report(out: Path, budget: DemoBudget, timings: dict[str, float], 
         + "".join(f"<tr><td>{k}</td><td>{v:.0f}</td></tr>" for k, v in timings.items())
         + "</table>",
     ]
-    for title, path in pictures[:3]:
+    for title, path in pictures:
         if Path(path).is_file():
             b64 = base64.b64encode(Path(path).read_bytes()).decode("ascii")
             parts.append(f"<h3>{html.escape(title)}</h3><img alt='{html.escape(title)}' src='data:image/png;base64,{b64}'>")

@@ -183,7 +183,9 @@ def write_demo_report(out: Path, budget: DemoBudget, timings: dict[str, float], 
     from yawil.bench.report import write_report
     from yawil.data.stats import write_stats
 
-    bench = write_report([out / "results" / "expert", out / "results" / "yilratt"], out / "bench_report")
+    first = f"{budget.tasks[-1]}/{int(budget.routes.split(':')[0] or 0)}/0"  # an episode both drove (Figure 6)
+    bench = write_report([out / "results" / "expert", out / "results" / "yilratt"], out / "bench_report",
+                         trajectories={"training": first, "new-town-weather": first})  # fmt: skip
     stats_png = write_stats(out / "data" / "town01", out / "data_stats.png")
     bench_md = bench["report.md"].read_text(encoding="utf-8").split("\n", 1)[1]
     bench_md = re.sub(r"\]\(([^)/]+\.png)\)", r"](bench_report/\1)", bench_md)  # its pictures live there

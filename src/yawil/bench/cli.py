@@ -42,6 +42,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--yaw-noise-deg", type=float, default=0.0, help="Gaussian noise sigma on guidance yaw (degrees)")
     p.add_argument("--command-noise-p", type=float, default=0.0, help="probability of a 5-frame wrong command")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument("--backend", default="embedded", choices=("embedded", "carla"), help="simulator (default embedded)")
+    p.add_argument("--host", default="localhost", help="--backend carla: server host (default localhost)")
+    p.add_argument("--port", type=int, default=2000, help="--backend carla: server port (default 2000)")
     p.add_argument("--town", default=None, help="routes/validate: town01 | town02 | square (default: all three)")
     p.add_argument("--routes-dir", default=None, help="routes/validate: folder of route files (default: the package's)")
     p.add_argument("--seed", type=int, default=0, help="routes: seed of the route draw (default 0)")
@@ -84,13 +87,23 @@ def _run_suite(args: argparse.Namespace) -> int:
     from yawil.bench.suites import episodes
 
     spec = AgentSpec(args.agent, args.yaw_noise_deg, args.command_noise_p).validate()
+    factory = None
+    routes_dir = args.routes_dir
+    if args.backend != "embedded":
+        from yawil.sim import world_factory
+        from yawil.sim.carla.routes import CARLA_ROUTES_DIR
+
+        if args.workers != 1:
+            raise ValueError(f"--backend {args.backend} drives one server: use --workers 1 (got {args.workers})")
+        factory = world_factory(args.backend, host=args.host, port=args.port)
+        routes_dir = routes_dir or str(CARLA_ROUTES_DIR)
     eps = episodes(
         args.suite,
         conditions=_split(args.condition),
         tasks=_split([args.tasks] if args.tasks else None),
         routes=args.routes,
         seeds=args.seeds,
-        routes_folder=Path(args.routes_dir) if args.routes_dir else None,
+        routes_folder=Path(routes_dir) if routes_dir else None,
     )
     out = Path(args.out) if args.out else Path("results") / (
         "expert" if spec.is_expert else Path(args.agent).resolve().parent.name
@@ -104,6 +117,7 @@ def _run_suite(args: argparse.Namespace) -> int:
         record=args.record,
         progress=not args.no_progress,
         label=args.label,
+        world_factory=factory,
     )
     print(
         f"{summary.total} episodes: {summary.skipped} already done, {summary.ran} run now "

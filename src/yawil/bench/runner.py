@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import inspect
 import os
+import sys
 import time
 from collections.abc import Callable, Mapping, Sequence
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
@@ -114,7 +115,30 @@ class EpisodeDriver:
             self._agent.reset()
         return self._agent
 
-    def run(self, ep: Episode) -> dict[str, Any]:
+    def run(self, ep: Episode, attempts: int = 3) -> dict[str, Any]:
+        """Drive one episode; when the simulator (not the agent) fails, reconnect and drive it again."""
+        from yawil.sim.types import SimulatorError
+
+        for attempt in range(1, attempts + 1):
+            try:
+                return self._run_once(ep)
+            except SimulatorError as err:
+                print(f"{ep.key}: simulator error ({err}); attempt {attempt} of {attempts}", file=sys.stderr)
+                self._drop_world()
+                if attempt == attempts:
+                    raise
+        raise AssertionError("unreachable")
+
+    def _drop_world(self) -> None:
+        """Forget a failed world so that the next episode opens a fresh one (a new connection)."""
+        world, self._world = self._world, None
+        if world is not None:
+            try:
+                world.close()
+            except Exception as err:  # a dead server cannot be closed cleanly; the new world replaces it
+                print(f"closing the failed world: {err}", file=sys.stderr)
+
+    def _run_once(self, ep: Episode) -> dict[str, Any]:
         world = self.world()
         wall0 = time.perf_counter()
         obs = world.reset(ep.scenario(self.camera), seed=ep.world_seed)

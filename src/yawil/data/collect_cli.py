@@ -63,6 +63,9 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--on-collision", choices=("trim", "keep", "discard"), default="trim",
                    help="trim: keep the episode without its last 2 s; keep: all frames; discard: drop the episode")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--backend", default="embedded", choices=("embedded", "carla"), help="simulator (default embedded)")
+    p.add_argument("--host", default="localhost", help="--backend carla: server host (default localhost)")
+    p.add_argument("--port", type=int, default=2000, help="--backend carla: server port (default 2000)")
     return p
 
 
@@ -76,8 +79,14 @@ def run(args: argparse.Namespace) -> int:
         noise_fraction=args.noise, noise_amplitude=args.noise_amplitude, straight_keep=args.straight_keep,
         blocked_keep_every=args.blocked_keep_every, on_collision=args.on_collision,
     )
+    from yawil.sim import world_factory
+
+    if args.backend != "embedded" and args.workers != 1:
+        raise SystemExit(f"yawil collect: --backend {args.backend} drives one server: use --workers 1 (got {args.workers})")
+    factory = world_factory(args.backend, **({} if args.backend == "embedded" else {"host": args.host, "port": args.port}))
     summary = collect(args.out, town=args.town, weathers=args.weathers, frames=args.frames, episodes=args.episodes,
-                      workers=args.workers, seed=args.seed, config=cfg, progress=not args.quiet)
+                      workers=args.workers, seed=args.seed, config=cfg, progress=not args.quiet,
+                      world_factory=factory)  # fmt: skip
     outcomes = ", ".join(f"{k} {v}" for k, v in sorted(summary.outcomes.items())) or "none"
     print(f"{summary.out}: wrote {summary.episodes_written} episodes, {summary.frames_written} frames in "
           f"{summary.seconds:.0f} s ({summary.frames_per_second:.1f} frames/s); skipped {summary.episodes_skipped} "

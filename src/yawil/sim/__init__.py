@@ -7,6 +7,8 @@ backend when it is installed. Importing this package registers `yawil/Town01-v0`
 
 from __future__ import annotations
 
+import functools
+from collections.abc import Callable
 from typing import Any
 
 from yawil.sim.types import (
@@ -23,6 +25,7 @@ from yawil.sim.types import (
     RoadOption,
     Route,
     Scenario,
+    SimulatorError,
     World,
     command_index,
     wrap_angle,
@@ -46,6 +49,13 @@ def make_world(backend: str = "embedded", **kwargs: Any) -> World:
     raise ValueError(f"unknown simulator backend {backend!r}; choose one of {', '.join(BACKENDS)}")
 
 
+def world_factory(backend: str = "embedded", **kwargs: Any) -> Callable[[], World]:
+    """A picklable no-argument maker of worlds, for worker processes (each builds its own world)."""
+    if backend not in BACKENDS:
+        raise ValueError(f"unknown simulator backend {backend!r}; choose one of {', '.join(BACKENDS)}")
+    return functools.partial(make_world, backend, **kwargs)
+
+
 def _register_envs() -> None:
     try:
         import gymnasium
@@ -60,5 +70,6 @@ _register_envs()
 
 __all__ = [
     "BACKENDS", "COMMANDS", "DT", "AgentState", "Control", "Event", "EventKind", "LightState", "Observation", "Pose",
-    "Privileged", "RoadOption", "Route", "Scenario", "World", "command_index", "make_world", "wrap_angle",
+    "Privileged", "RoadOption", "Route", "Scenario", "SimulatorError", "World", "command_index", "make_world", "world_factory",
+    "wrap_angle",
 ]

@@ -195,6 +195,13 @@ class Observation:
     privileged: Privileged = field(default_factory=Privileged)
 
 
+class SimulatorError(RuntimeError):
+    """The simulator, not the agent, ended an episode (lost connection, crashed server, client time-out).
+
+    A runner retries such an episode on a fresh connection instead of counting it against the agent.
+    """
+
+
 @runtime_checkable
 class World(Protocol):
     """A simulator backend. One episode at a time; deterministic given (scenario, seed)."""

@@ -8,9 +8,9 @@ client and server versions differ, a town the server does not have): retrying do
 
 from __future__ import annotations
 
+from yawil.sim.types import SimulatorError  # backend-neutral: the runner catches it without importing carla
 
-class SimulatorError(RuntimeError):
-    """The simulator failed during an episode; the episode says nothing about the agent."""
+__all__ = ["CarlaSetupError", "SimulatorError", "START_HINT"]
 
 
 class CarlaSetupError(RuntimeError):

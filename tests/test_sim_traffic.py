@@ -179,7 +179,7 @@ def test_jaywalker_does_not_step_in_front_of_or_into_a_standing_ego() -> None:
     for dist, clear in ((20.0, False), (80.0, True)):
         x, y = mid - dist * u / np.hypot(*u)
         car = np.array([[x, y, heading, 4.5, 1.8, 8.0]])
-        assert Pedestrians._crossing_clear(start, far_side, 1.3, car) is clear
+        assert Pedestrians._crossing_clear(start, far_side, np.array([1.3]), car)[0] == clear
 
 
 def test_no_vehicle_enters_a_junction_without_room_after_it() -> None:

@@ -21,6 +21,7 @@ CLEARANCE = 1.0  # metres kept from any vehicle's box when deciding to cross
 CONTACT = SIZE / 2 + 0.2  # on the road, a step that would come this close to a vehicle's box is not taken
 HORIZON_EXTRA = 2.0  # seconds added to the crossing time when checking approaching vehicles
 GIVE_UP_S = 4.0  # stopped on the road this long: turn back
+LOOK_EVERY = 5  # steps between two looks from the kerb (0.5 s: a pedestrian's glance, and a tenth of the cost)
 
 
 class Pedestrians:
@@ -44,6 +45,7 @@ class Pedestrians:
         self.kerb = np.zeros(n, dtype=bool)  # waiting at a kerb for a clear crosswalk
         self.back = np.zeros((n, 2))  # where a jaywalker left its sidewalk (to turn back to)
         self.stopped = np.zeros(n)  # seconds stopped on the road
+        self.steps = 0
         self.color_index = np.zeros(n, dtype=np.int64)
         self.ids = np.arange(10001, 10001 + n)
 
@@ -79,35 +81,34 @@ class Pedestrians:
             placed += 1
 
     @staticmethod
-    def _crossing_clear(p: np.ndarray, q: np.ndarray, speed: float, actors: np.ndarray) -> bool:
-        """True if no actor's box, swept along its heading over the crossing's duration, meets segment p-q.
+    def _crossing_clear(p: np.ndarray, q: np.ndarray, speed: np.ndarray, actors: np.ndarray) -> np.ndarray:
+        """Per crossing p[i]-q[i] (walked at speed[i]): True if no actor's box, swept along its heading over the
+        crossing's duration plus HORIZON_EXTRA, comes within CLEARANCE of it.
 
         `actors` rows: (x, y, yaw, length, width, speed). A vehicle's path is taken as straight over these few
         seconds; that is all a pedestrian at the kerb can judge, and drivers stop for what they missed.
         """
-        if not len(actors):
-            return True
+        p, q = np.atleast_2d(p), np.atleast_2d(q)
+        if not len(actors) or not len(p):
+            return np.ones(len(p), dtype=bool)
         seg = q - p
-        span = float(np.hypot(seg[0], seg[1]))
-        if span < 1e-6:
-            return True
-        u = seg / span
-        n = np.array([-u[1], u[0]])
-        x, y, yaw, length, width, speed_a = actors.T
-        rx, ry = x - p[0], y - p[1]
-        a = rx * u[0] + ry * u[1]  # along the crossing
-        b = rx * n[0] + ry * n[1]  # across it (the crossing line is b = 0)
+        span = np.maximum(np.hypot(seg[:, 0], seg[:, 1]), 1e-6)[:, None]
+        ux, uy = seg[:, 0:1] / span, seg[:, 1:2] / span
+        nx, ny = -uy, ux
+        x, y, yaw, length, width, speed_a = (actors[None, :, k] for k in range(6))
+        rx, ry = x - p[:, 0:1], y - p[:, 1:2]
+        a = rx * ux + ry * uy  # along the crossing
+        b = rx * nx + ry * ny  # across it (the crossing line is b = 0)
         c, s = np.cos(yaw), np.sin(yaw)
-        hu = length / 2 * np.abs(c * u[0] + s * u[1]) + width / 2 * np.abs(-s * u[0] + c * u[1])
-        hn = length / 2 * np.abs(c * n[0] + s * n[1]) + width / 2 * np.abs(-s * n[0] + c * n[1])
-        horizon = span / max(speed, 0.1) + HORIZON_EXTRA
-        va = speed_a * (c * u[0] + s * u[1]) * horizon  # displacement over the horizon
-        vb = speed_a * (c * n[0] + s * n[1]) * horizon
+        cu, cn = c * ux + s * uy, c * nx + s * ny  # the actor's heading on the two axes
+        hu = length / 2 * np.abs(cu) + width / 2 * np.abs(cn)
+        hn = length / 2 * np.abs(cn) + width / 2 * np.abs(cu)
+        horizon = span / np.maximum(np.atleast_1d(speed), 0.1)[:, None] + HORIZON_EXTRA
+        va, vb = speed_a * cu * horizon, speed_a * cn * horizon  # displacement over the horizon
         margin = CLEARANCE + SIZE / 2
-        a_lo, a_hi = np.minimum(a, a + va) - hu - margin, np.maximum(a, a + va) + hu + margin
-        b_lo, b_hi = np.minimum(b, b + vb) - hn - margin, np.maximum(b, b + vb) + hn + margin
-        meets = (a_hi > 0.0) & (a_lo < span) & (b_hi > 0.0) & (b_lo < 0.0)
-        return not bool(meets.any())
+        meets = ((np.maximum(a, a + va) + hu + margin > 0.0) & (np.minimum(a, a + va) - hu - margin < span)
+                 & (np.maximum(b, b + vb) + hn + margin > 0.0) & (np.minimum(b, b + vb) - hn - margin < 0.0))
+        return ~meets.any(axis=1)
 
     @staticmethod
     def _box_distance(xy: np.ndarray, actors: np.ndarray) -> np.ndarray:
@@ -138,25 +139,27 @@ class Pedestrians:
         actors = np.zeros((0, 6)) if actors is None else np.asarray(actors, dtype=np.float64).reshape(-1, 6)
         # jaywalk: leave a sidewalk edge along a road for the twin on the other side, if the road is clear
         draw = rng.random(self.n)
-        jay = (draw < self.jaywalk_per_s * dt) & (self.dest >= 0) & (self.twin[self.edge] >= 0) & ~self.on_road
-        for i in np.flatnonzero(jay).tolist():
-            e = int(self.twin[self.edge[i]])
-            a, b = walk.edges[e]
-            pa, pb = walk.xy[a], walk.xy[b]
+        jay = np.flatnonzero((draw < self.jaywalk_per_s * dt) & (self.dest >= 0) & (self.twin[self.edge] >= 0)
+                             & ~self.on_road)
+        if len(jay):
+            e = self.twin[self.edge[jay]]
+            pa, pb = walk.xy[walk.edges[e, 0]], walk.xy[walk.edges[e, 1]]
             u = pb - pa
-            f = float(np.clip(np.dot(self.xy[i] - pa, u) / np.dot(u, u), 0.0, 1.0))
-            target = pa + f * u
-            if not self._crossing_clear(self.xy[i], target, float(self.speed[i]), actors):
-                continue
-            self.back[i] = self.xy[i]
-            self.target[i] = target
-            self.dest[i], self.edge[i] = -1, e
-            self.on_road[i] = True
+            f = np.clip(np.sum((self.xy[jay] - pa) * u, axis=1) / np.sum(u * u, axis=1), 0.0, 1.0)
+            target = pa + f[:, None] * u
+            go = self._crossing_clear(self.xy[jay], target, self.speed[jay], actors)
+            jay, e, target = jay[go], e[go], target[go]
+            self.back[jay] = self.xy[jay]
+            self.target[jay] = target
+            self.dest[jay], self.edge[jay] = -1, e
+            self.on_road[jay] = True
         # at a kerb: step onto the crosswalk once it is clear
-        for i in np.flatnonzero(self.kerb).tolist():
-            if self._crossing_clear(self.xy[i], self.target[i], float(self.speed[i]), actors):
-                self.kerb[i] = False
-                self.on_road[i] = True
+        self.steps += 1
+        kerb = np.flatnonzero(self.kerb) if self.steps % LOOK_EVERY == 0 else np.zeros(0, dtype=np.int64)
+        if len(kerb):
+            go = kerb[self._crossing_clear(self.xy[kerb], self.target[kerb], self.speed[kerb], actors)]
+            self.kerb[go] = False
+            self.on_road[go] = True
         d = self.target - self.xy
         dist = np.hypot(d[:, 0], d[:, 1])
         stride = self.speed * dt

@@ -124,6 +124,8 @@ class EmbeddedWorld:
         self._static_cache: tuple[float, float, np.ndarray | None] = (math.inf, math.inf, None)
         self._lights_key: bytes = b""
         self._lights_tuple: tuple[LightState, ...] = ()
+        self._names_key: bytes = b""
+        self._names: list[str] = []
         self.c_lane.reset(self._ego_region())
         self.events: tuple[Event, ...] = ()
         self.done = False
@@ -236,20 +238,25 @@ class EmbeddedWorld:
         events: list[Event] = []
         veh, ped, town = self.vehicles, self.pedestrians, self.town
         boxes, ids, types = [], [], []
+        # candidates: bounding circles that reach the ego's (exact: the box test would reject the others)
+        reach = math.hypot(self.params.length / 2, self.params.width / 2)
         if veh.n:
-            near = np.flatnonzero(np.hypot(veh.x - ex, veh.y - ey) < 8.0)
+            near = np.flatnonzero(np.hypot(veh.x - ex, veh.y - ey) < np.hypot(veh.length, veh.width) / 2 + reach)
             if len(near):
                 boxes.append(np.stack([veh.x[near], veh.y[near], veh.yaw[near], veh.length[near], veh.width[near]], 1))
                 ids.append(veh.ids[near])
                 types += ["vehicle"] * len(near)
         if ped.n:
-            near = np.flatnonzero(np.hypot(ped.xy[:, 0] - ex, ped.xy[:, 1] - ey) < 4.0)
+            near = np.flatnonzero(np.hypot(ped.xy[:, 0] - ex, ped.xy[:, 1] - ey) < SIZE * math.sqrt(0.5) + reach)
             if len(near):
                 boxes.append(np.stack([ped.xy[near, 0], ped.xy[near, 1], ped.yaw[near], np.full(len(near), SIZE),
                                        np.full(len(near), SIZE)], 1))
                 ids.append(ped.ids[near])
                 types += ["pedestrian"] * len(near)
         near = self._near_statics(ex, ey)
+        if len(near):
+            st = town.statics
+            near = near[np.hypot(st[near, 0] - ex, st[near, 1] - ey) < town.static_radius[near] + reach]
         if len(near):
             boxes.append(town.statics[near])
             ids.append(near)
@@ -259,8 +266,10 @@ class EmbeddedWorld:
         else:
             events += self.c_collision.update(t, self.ego_box(), np.zeros((0, 5)), np.zeros(0, dtype=np.int64), [])
         events += self.c_lane.update(t, ex, ey, self._ego_region())
-        names = [STATE_NAMES[int(c)] for c in self.lights.codes]
-        events += self.c_light.update(t, prev, (ex, ey), self.ego.yaw, names)
+        key = self.lights.codes.tobytes()
+        if key != self._names_key:  # the names change a few times a minute; rebuilding them each step cost
+            self._names_key, self._names = key, [STATE_NAMES[int(c)] for c in self.lights.codes]
+        events += self.c_light.update(t, prev, (ex, ey), self.ego.yaw, self._names)
         self.c_progress.update(ex, ey)
         self.c_distance.update(prev, (ex, ey))
         events += self.c_goal.update(t, ex, ey)

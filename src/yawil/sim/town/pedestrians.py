@@ -171,8 +171,10 @@ class Pedestrians:
         road = np.flatnonzero(self.on_road & (moving | arrived))
         if len(road) and len(actors):
             ahead_xy = self.xy[road] + np.where(arrived[road, None], d[road], step[road])
-            now_d = self._box_distance(self.xy[road], actors[:, :5])
-            nxt_d = self._box_distance(ahead_xy, actors[:, :5])
+            gx, gy = actors[:, 0, None] - self.xy[None, road, 0], actors[:, 1, None] - self.xy[None, road, 1]
+            close = actors[np.any(np.hypot(gx, gy) < 6.0, axis=1), :5]  # a stride from touching, at most
+            now_d = self._box_distance(self.xy[road], close)
+            nxt_d = self._box_distance(ahead_xy, close)
             into = np.any((nxt_d < CONTACT) & (nxt_d < now_d), axis=1)
             held = road[into]
             moving[held] = False

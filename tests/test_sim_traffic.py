@@ -168,11 +168,12 @@ def test_jaywalker_does_not_step_in_front_of_or_into_a_standing_ego() -> None:
     assert ped.on_road[0] and ped.dest[0] == -1
     start = ped.xy[0].copy()
     ped.jaywalk_per_s = 0.0  # once back, it would try again further along
-    closest = math.inf
+    closest, waited = math.inf, 0
     for _ in range(120):  # a car pulls up across its way: it stops short, then turns back
         ped.step(0.1, rng, ego)
         closest = min(closest, float(Pedestrians._box_distance(ped.xy[:1], ego[:, :5])[0, 0]))
-    assert closest > SIZE / 2
+        waited += int(ped.on_road[0] and ped.v[0] == 0.0)  # observers see it standing, not walking
+    assert closest > SIZE / 2 and waited >= 30
     assert not ped.on_road[0] and ped.edge[0] == e and ped.dest[0] >= 0  # back on its own sidewalk
     # a vehicle coming at 8 m/s from 20 m away is too close to cross in front of; one 80 m away is not
     heading = math.atan2(u[1], u[0])

@@ -39,7 +39,8 @@ class Pedestrians:
         self.dest = np.zeros(n, dtype=np.int64)  # walkway node walked to, or -1 while jaywalking
         self.prev = np.zeros(n, dtype=np.int64)
         self.edge = np.zeros(n, dtype=np.int64)  # current edge, or the twin edge while jaywalking
-        self.speed = np.zeros(n)
+        self.speed = np.zeros(n)  # walking pace
+        self.v = np.zeros(n)  # speed this step: the pace, or 0 while waiting (what observers are told)
         self.yaw = np.zeros(n)
         self.on_road = np.zeros(n, dtype=bool)
         self.kerb = np.zeros(n, dtype=bool)  # waiting at a kerb for a clear crosswalk
@@ -74,7 +75,7 @@ class Pedestrians:
             i = placed
             self.xy[i], self.target[i] = xy, walk.xy[b]
             self.dest[i], self.prev[i], self.edge[i] = b, a, e
-            self.speed[i] = rng.uniform(1.0, 1.6)
+            self.speed[i] = self.v[i] = rng.uniform(1.0, 1.6)
             self.color_index[i] = rng.integers(len(PED_COLORS))
             d = walk.xy[b] - walk.xy[a]
             self.yaw[i] = np.arctan2(d[1], d[0])
@@ -183,6 +184,7 @@ class Pedestrians:
             self.stopped[road[~into]] = 0.0
             for i in held[self.stopped[held] >= GIVE_UP_S].tolist():
                 self._turn_back(i)
+        self.v = np.where(moving | arrived, self.speed, 0.0)
         self.xy[moving] += step[moving]
         self.yaw[moving] = np.arctan2(d[moving, 1], d[moving, 0])
         for i in np.flatnonzero(arrived).tolist():

@@ -314,7 +314,7 @@ class EmbeddedWorld:
                                      float(veh.v[i]), float(veh.length[i]), float(veh.width[i])))
         for i in np.flatnonzero(np.hypot(ped.xy[:, 0] - ex, ped.xy[:, 1] - ey) < PRIVILEGED_RADIUS).tolist():
             agents.append(AgentState(int(ped.ids[i]), "pedestrian", float(ped.xy[i, 0]), float(ped.xy[i, 1]),
-                                     float(ped.yaw[i]), float(ped.speed[i]), SIZE, SIZE))
+                                     float(ped.yaw[i]), float(ped.v[i]), SIZE, SIZE))
         rx, ry = self.route.xy[idx]
         if math.hypot(rx - ex, ry - ey) < 3.0:
             lane_yaw = float(self.route.lane_yaw[idx])

@@ -32,8 +32,8 @@ class DemoBudget:
     lr: float = 1e-3
     lr_step_epochs: int = 4
     epochs: int = 12
-    max_steps: int = 700  # optimiser steps in all (about 45k samples)
-    max_minutes: float = 9.0  # wall-time cap of one training invocation
+    max_steps: int = 400  # optimiser steps in all (about 26k samples, 4 epochs of the 6k frames)
+    max_minutes: float = 8.0  # wall-time cap of one training invocation (keeps the demo within 20 min)
     tasks: tuple[str, ...] = ("straight", "one_turn")
     routes: str = "0:3"  # route ids per task and condition
     expert_tasks: tuple[str, ...] = ("straight", "one_turn", "navigation", "regular")

@@ -232,3 +232,38 @@ def test_turning_vehicle_looks_along_its_own_path_for_the_ego() -> None:
         veh.step(0.1, np.random.default_rng(0), green, (mx, my, myaw, 0.0), (4.6, 1.9), none, np.zeros((0, 2)))
     boxes = np.array([[veh.x[0], veh.y[0], veh.yaw[0], 4.5, 1.8]])
     assert veh.v[0] < 0.05 and not boxes_overlap((mx, my, myaw, 4.6, 1.9), boxes).any()
+
+
+def test_a_queue_head_starved_of_exit_room_reserves_it() -> None:
+    """A head waiting 10 s for room on a 20 m block keeps it from the other approach (town02 seed 30 starved)."""
+    lanes = get_town("town02").lanes
+    exit_lane = 11  # 20 m
+    conns = [c for c in lanes.node_connectors[lanes.lanes[exit_lane].start_node] if lanes.lanes[c].exit == exit_lane]
+    (ca, cb) = conns[:2]
+    ea, eb = lanes.lanes[ca].entry, lanes.lanes[cb].entry
+    for waited, other_enters in ((0.0, True), (11.0, False)):
+        veh = Vehicles(lanes)
+        veh._alloc(3)
+        veh.lane[:] = (exit_lane, ea, eb)
+        veh.s[:] = (12.0, veh.stop_s[ea] - 2.25 - 2.6, lanes.length[eb] - 15.0)
+        veh.v[:] = (0.0, 0.0, 6.0)
+        veh.v0[:] = (0.01, 8.0, 8.0)  # one car stands on the block: room for exactly one more
+        veh.nxt1[:] = (lanes.lanes[exit_lane].successors[0], ca, cb)
+        veh.nxt2[:] = [lanes.lanes[int(n)].successors[0] for n in veh.nxt1]
+        veh.length[:], veh.width[:] = 4.5, 1.8
+        veh.wait[1] = waited
+        veh._update_pose()
+        codes = np.full(len(lanes.approaches), RED, dtype=np.int64)
+        codes[lanes.light_of_lane[eb]] = 0  # green for the other approach, red for the waiting head
+        far, none, no_ped = (1e4, 1e4, 0.0, 0.0), np.zeros(0, dtype=np.int64), np.zeros((0, 2))
+        entered = False
+        for _ in range(100):
+            veh.step(0.1, np.random.default_rng(0), codes, far, (4.6, 1.9), none, no_ped)
+            entered |= bool(veh.lane[2] == cb)
+        assert entered is other_enters
+        if not other_enters:  # the head's green comes: the room it kept is its own
+            codes[lanes.light_of_lane[ea]] = 0
+            codes[lanes.light_of_lane[eb]] = RED
+            for _ in range(100):
+                veh.step(0.1, np.random.default_rng(0), codes, far, (4.6, 1.9), none, no_ped)
+            assert veh.lane[1] in (ca, exit_lane)

@@ -34,6 +34,7 @@ class Vehicles:
     CORRIDOR = 30.0  # how far along its path a vehicle looks for the ego
     PED_CORRIDOR = 20.0  # ... and for pedestrians on the road
     PATH_STEP = 2.0  # metres between the path samples (well under a vehicle's length: nothing slips between)
+    RESERVE_S = 10.0  # waited this long for room on its exit lane, a queue head reserves the next room there
     BEHIND = 6.0  # paths do not turn back: what lies this far behind a vehicle's centre is never on its path
 
     def __init__(self, lanes: LaneGraph) -> None:
@@ -65,6 +66,7 @@ class Vehicles:
         self.y = np.zeros(n)
         self.yaw = np.zeros(n)
         self.ids = np.arange(1, n + 1)
+        self.wait = np.zeros(n)  # seconds a queue head has waited at its stop line for room after the junction
 
     def _pick(self, lane: int, rng: np.random.Generator) -> int:
         succ = self.successors[lane]
@@ -258,7 +260,19 @@ class Vehicles:
         must_stop = (code != GREEN) & ~((code == YELLOW) & (g_stop < v * v / (2 * self.B_COMF)))
         gate = self.is_gate[self.nxt1] & (lane < lanes.n_road_lanes)
         room = self._exit_room(ego_on_lane, ego_size[0])
-        blocked = gate & (room[self.exit_of[self.nxt1]] < self.length + self.S0 + 1.0)
+        need = self.length + self.S0 + 1.0
+        exit_lane = self.exit_of[self.nxt1]
+        # fairness: a queue head that has waited RESERVE_S at its stop line for room on its exit lane reserves
+        # the next room there, else another approach (green while it is red) can refill that lane every cycle
+        at_line = gate & (g_stop < 4.0)
+        self.wait = np.where(at_line & ((self.wait > 0.0) | (room[exit_lane] < need)), self.wait + dt, 0.0)
+        holder = np.full(len(L), -1, dtype=np.int64)
+        waiting = np.flatnonzero(self.wait > self.RESERVE_S)
+        for i in waiting[np.argsort(self.wait[waiting], kind="stable")].tolist():
+            holder[exit_lane[i]] = i  # the longest wait wins
+        reserved = np.where(holder >= 0, need[np.maximum(holder, 0)], 0.0)
+        room_for = room[exit_lane] - np.where(holder[exit_lane] == np.arange(self.n), 0.0, reserved[exit_lane])
+        blocked = gate & (room_for < need)
         at_gate = np.flatnonzero(gate & ~blocked)
         blocked[at_gate] = np.any(lanes.conflict[self.nxt1[at_gate]] & occ[None, :], axis=1)
         # past its stop line, a blocked vehicle still waits at the junction's entry (step 5 holds it there)
@@ -281,12 +295,13 @@ class Vehicles:
         # Entering a junction re-checks both rules against those who got in earlier this step.
         for i in np.flatnonzero(s_new > L[lane]).tolist():
             nxt = int(self.nxt1[i])
-            if self.is_gate[nxt] and (np.any(lanes.conflict[nxt] & occ)
-                                      or room[self.exit_of[nxt]] < self.length[i] + self.S0 + 1.0):
+            e = int(self.exit_of[nxt])
+            free = room[e] - (reserved[e] if holder[e] not in (-1, i) else 0.0)
+            if self.is_gate[nxt] and (np.any(lanes.conflict[nxt] & occ) or free < need[i]):
                 self.s[i], self.v[i] = L[lane[i]], 0.0  # wait at the entry
                 continue
             if nxt >= lanes.n_road_lanes:
-                room[self.exit_of[nxt]] -= self.length[i] + self.S0
+                room[e] -= self.length[i] + self.S0
             self.s[i] -= L[lane[i]]
             self.lane[i] = nxt
             self.nxt1[i] = self.nxt2[i]

@@ -124,7 +124,7 @@ def run_demo(out: Path, budget: DemoBudget, seed: int = 0) -> Path:
         cfg = TrainConfig(
             model=budget.model, data=[str(data)], out=str(run_dir), epochs=budget.epochs,
             batch_size=budget.batch_size, lr=budget.lr, lr_step_epochs=budget.lr_step_epochs,
-            max_steps=budget.max_steps, max_minutes=budget.max_minutes, seed=seed, workers=2,
+            max_steps=budget.max_steps, max_minutes=budget.max_minutes, seed=seed, workers=1,
         )  # fmt: skip
         result = train(cfg, resume=(run_dir / "last.pt").is_file())
         info = {"seconds": time.perf_counter() - t, "steps": result.steps, "epochs": result.epochs_done,

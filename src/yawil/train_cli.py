@@ -26,7 +26,7 @@ _OPTIONS: tuple[tuple[str, str, Any, str], ...] = (
     ("--val-fraction", "val_fraction", float, "share of episodes held out for validation (default 0.1)"),
     ("--seed", "seed", int, "seed of the split, data order, augmentation and initial weights (default 0)"),
     ("--workers", "workers", int, "DataLoader worker processes (default 0: load in the main process)"),
-    ("--threads", "threads", int, "torch CPU threads (default 0: torch's choice)"),
+    ("--threads", "threads", int, "torch CPU threads (default 0: the cores left after --workers)"),
     ("--device", "device", str, "auto (default) | cpu | cuda"),
     ("--precision", "precision", str, "auto (default: bf16 on CPUs with native bf16, fp16 on CUDA) | fp32 | bf16 | fp16"),
     ("--channels-last", "channels_last", str, "auto (default) | on | off"),

@@ -23,7 +23,7 @@ test-all: $(STAMP)
 
 lint: $(STAMP)
 	$(BIN)/ruff check src tests benchmarks
-	$(BIN)/mypy src/yawil/guidance.py src/yawil/models src/yawil/sim
+	$(BIN)/mypy src/yawil
 
 demo: $(STAMP)
 	$(BIN)/yawil demo --out runs/demo

@@ -176,14 +176,14 @@ def write_video(frames: Sequence[np.ndarray], path: Path, fps: int = 10) -> Path
         try:
             with imageio.get_writer(tmp, fps=fps, codec="libx264", macro_block_size=1) as writer:
                 for f in padded:
-                    writer.append_data(f)
+                    writer.append_data(f)  # type: ignore[attr-defined]
             tmp.replace(path)
             return path
         except Exception:  # ffmpeg missing or failing: fall back to GIF
             tmp.unlink(missing_ok=True)
             path = path.with_suffix(".gif")
     tmp = path.with_name(path.stem + ".tmp.gif")
-    imageio.mimsave(tmp, padded, duration=1.0 / fps, loop=0)
+    imageio.mimsave(tmp, padded, duration=1.0 / fps, loop=0)  # type: ignore[arg-type]
     tmp.replace(path)
     return path
 

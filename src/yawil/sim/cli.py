@@ -90,7 +90,7 @@ def _view(args: argparse.Namespace) -> int:
                 obs = world.step(follow_route(obs))
         assert world.town is not None
         fig = draw_birdseye(world.town.geometry, route_xy=obs.route.xy, actors=world.actor_views(radius=1e9),
-                            ego=obs.pose, light_states=world.light_states())
+                            ego=world.ego_view(), light_states=world.light_states())
         path = out / "birdseye.png"
         tmp = path.with_suffix(".tmp.png")
         fig.savefig(tmp, dpi=120)

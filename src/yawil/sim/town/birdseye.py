@@ -41,7 +41,7 @@ def draw_birdseye(
     geometry: TownGeometry,
     route_xy: np.ndarray | None = None,
     actors: Sequence[ActorView] = (),
-    ego: Pose | None = None,
+    ego: Pose | ActorView | None = None,  # anything with x, y, yaw
     light_states: Mapping[int, str] | None = None,
     path: str | os.PathLike[str] | None = None,
     ax: Any = None,

@@ -181,6 +181,10 @@ def test_jaywalker_does_not_step_in_front_of_or_into_a_standing_ego() -> None:
         x, y = mid - dist * u / np.hypot(*u)
         car = np.array([[x, y, heading, 4.5, 1.8, 8.0]])
         assert Pedestrians._crossing_clear(start, far_side, np.array([1.3]), car)[0] == clear
+    # a car standing with its bumper 0.8 m short of the crossing (stopped a little over its stop line) does
+    # not keep pedestrians at the kerb: they pass in front of it (else it and they wait for each other)
+    x, y = mid - (2.3 + 0.8) * u / np.hypot(*u)
+    assert Pedestrians._crossing_clear(start, far_side, np.array([1.3]), np.array([[x, y, heading, 4.6, 1.9, 0.0]]))[0]
 
 
 def test_no_vehicle_enters_a_junction_without_room_after_it() -> None:

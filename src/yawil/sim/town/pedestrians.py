@@ -17,10 +17,12 @@ from yawil.sim.town.walkways import Walkways
 PED_COLORS = ((0.2, 0.2, 0.5), (0.6, 0.1, 0.1), (0.1, 0.4, 0.2), (0.3, 0.3, 0.3), (0.7, 0.6, 0.2), (0.5, 0.3, 0.5))
 SIZE = 0.6  # footprint, metres square
 HEIGHT = 1.75
-CLEARANCE = 1.0  # metres kept from any vehicle's box when deciding to cross
+CLEARANCE = 1.0  # metres kept from a moving vehicle's box when deciding to cross
+STANDING = 0.3  # m/s: slower than this, a vehicle is standing, and passing a bumper's width off it is fine
 CONTACT = SIZE / 2 + 0.2  # on the road, a step that would come this close to a vehicle's box is not taken
 HORIZON_EXTRA = 2.0  # seconds added to the crossing time when checking approaching vehicles
 GIVE_UP_S = 4.0  # stopped on the road this long: turn back
+KERB_GIVE_UP_S = 15.0  # waited at a kerb this long (a car stands on the crosswalk): walk elsewhere
 LOOK_EVERY = 5  # steps between two looks from the kerb (0.5 s: a pedestrian's glance, and a tenth of the cost)
 
 
@@ -45,7 +47,7 @@ class Pedestrians:
         self.on_road = np.zeros(n, dtype=bool)
         self.kerb = np.zeros(n, dtype=bool)  # waiting at a kerb for a clear crosswalk
         self.back = np.zeros((n, 2))  # where a jaywalker left its sidewalk (to turn back to)
-        self.stopped = np.zeros(n)  # seconds stopped on the road
+        self.stopped = np.zeros(n)  # seconds stopped on the road, or waiting at a kerb
         self.steps = 0
         self.color_index = np.zeros(n, dtype=np.int64)
         self.ids = np.arange(10001, 10001 + n)
@@ -106,7 +108,7 @@ class Pedestrians:
         hn = length / 2 * np.abs(cn) + width / 2 * np.abs(cu)
         horizon = span / np.maximum(np.atleast_1d(speed), 0.1)[:, None] + HORIZON_EXTRA
         va, vb = speed_a * cu * horizon, speed_a * cn * horizon  # displacement over the horizon
-        margin = CLEARANCE + SIZE / 2
+        margin = np.where(speed_a < STANDING, CONTACT, CLEARANCE + SIZE / 2)
         meets = ((np.maximum(a, a + va) + hu + margin > 0.0) & (np.minimum(a, a + va) - hu - margin < span)
                  & (np.maximum(b, b + vb) + hn + margin > 0.0) & (np.minimum(b, b + vb) - hn - margin < 0.0))
         return ~meets.any(axis=1)
@@ -158,9 +160,20 @@ class Pedestrians:
         self.steps += 1
         kerb = np.flatnonzero(self.kerb) if self.steps % LOOK_EVERY == 0 else np.zeros(0, dtype=np.int64)
         if len(kerb):
-            go = kerb[self._crossing_clear(self.xy[kerb], self.target[kerb], self.speed[kerb], actors)]
+            clear = self._crossing_clear(self.xy[kerb], self.target[kerb], self.speed[kerb], actors)
+            go = kerb[clear]
             self.kerb[go] = False
             self.on_road[go] = True
+            self.stopped[go] = 0.0
+            self.stopped[kerb[~clear]] += LOOK_EVERY * dt
+            for i in kerb[~clear][self.stopped[kerb[~clear]] >= KERB_GIVE_UP_S].tolist():
+                here = int(self.prev[i])  # the kerb's node; walk on along another edge instead
+                options = [k for k in walk.neighbours[here] if k != int(self.dest[i])] or walk.neighbours[here]
+                nxt = options[int(rng.integers(len(options)))]
+                self.dest[i], self.edge[i] = nxt, walk.edge_of[(here, nxt)]
+                self.target[i] = walk.xy[nxt]
+                self.kerb[i] = bool(self.is_crosswalk[self.edge[i]])
+                self.stopped[i] = 0.0
         d = self.target - self.xy
         dist = np.hypot(d[:, 0], d[:, 1])
         stride = self.speed * dt

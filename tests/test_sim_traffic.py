@@ -271,3 +271,24 @@ def test_a_queue_head_starved_of_exit_room_reserves_it() -> None:
             for _ in range(100):
                 veh.step(0.1, np.random.default_rng(0), codes, far, (4.6, 1.9), none, no_ped)
             assert veh.lane[1] in (ca, exit_lane)
+
+
+def test_pedestrian_at_a_blocked_crosswalk_walks_elsewhere() -> None:
+    """A car standing on the crosswalk: the pedestrian waits at the kerb, then (15 s) goes another way."""
+    walk = get_town("square").walkways
+    e = walk.edge_kind.index("crosswalk")
+    a, b = (int(k) for k in walk.edges[e])
+    ped = Pedestrians(walk, jaywalk_per_s=0.0)
+    ped.spawn(1, np.random.default_rng(0), keep_out=[])
+    ped.xy[0], ped.target[0], ped.prev[0], ped.dest[0], ped.edge[0] = walk.xy[a], walk.xy[b], a, b, e
+    ped.kerb[0], ped.on_road[0], ped.speed[0] = True, False, 1.3
+    u = walk.xy[b] - walk.xy[a]
+    mid = (walk.xy[a] + walk.xy[b]) / 2
+    car = np.array([[mid[0], mid[1], math.atan2(u[0], -u[1]), 4.5, 1.8, 0.0]])  # across the crosswalk
+    rng = np.random.default_rng(3)
+    for _ in range(140):
+        ped.step(0.1, rng, car)
+        assert not ped.on_road[0] and np.array_equal(ped.xy[0], walk.xy[a])  # waits at its kerb
+    for _ in range(40):
+        ped.step(0.1, rng, car)
+    assert ped.dest[0] != b and np.hypot(*(ped.xy[0] - walk.xy[a])) > 1.0

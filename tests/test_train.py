@@ -173,6 +173,28 @@ def test_budget_stop_mid_epoch_then_resume(tmp_path: Path) -> None:
         train(small(tmp_path, "b"), splits=splits())
 
 
+def test_interrupt_saves_and_resume_continues(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import yawil.train as train_module
+
+    real_step = train_module.prepare_batch
+    calls = {"n": 0}
+
+    def interrupt_on_third_batch(*args: Any, **kwargs: Any) -> Any:
+        calls["n"] += 1
+        if calls["n"] == 3:
+            raise KeyboardInterrupt
+        return real_step(*args, **kwargs)
+
+    monkeypatch.setattr(train_module, "prepare_batch", interrupt_on_third_batch)
+    with pytest.raises(KeyboardInterrupt):
+        train(small(tmp_path, "i", epochs=1), splits=splits(64))  # 4 batches of 16
+    saved = load_checkpoint(tmp_path / "i" / "last.pt")
+    assert saved["position"]["step"] == 2  # the two finished steps are kept
+    monkeypatch.setattr(train_module, "prepare_batch", real_step)
+    resumed = train(small(tmp_path, "i", epochs=1), resume=True, splits=splits(64))
+    assert (resumed.epochs_done, resumed.steps) == (1, 4)
+
+
 @pytest.fixture(scope="module")
 def real_data(tmp_path_factory: pytest.TempPathFactory) -> Path:
     """A small dataset written by yawil.data's writer (synthetic images, 5 episodes of 10 frames, K = 4)."""

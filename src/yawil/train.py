@@ -16,7 +16,10 @@ import io
 import math
 import os
 import random
+import signal
+import sys
 import tempfile
+import threading
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import AbstractContextManager, nullcontext
@@ -573,6 +576,8 @@ def train(
         write_metrics(out, metrics)
         writer.flush()
 
+    if threading.current_thread() is threading.main_thread():
+        signal.signal(signal.SIGTERM, _raise_interrupt)  # a kill saves like Ctrl-C
     model.train()
     n_batches = 0
     while pos.epoch < cfg.epochs:
@@ -588,7 +593,17 @@ def train(
             total=n_batches, initial=pos.batch, desc=f"epoch {pos.epoch + 1}/{cfg.epochs}",
             disable=not cfg.progress, unit="batch", dynamic_ncols=True,
         )  # fmt: skip
-        stop = _train_epoch(model, loader, optimizer, scaler, norm, kind, uses_command, cfg, runtime, pos, writer, bar, started)
+        try:
+            stop = _train_epoch(model, loader, optimizer, scaler, norm, kind, uses_command, cfg, runtime, pos, writer, bar, started)
+        except KeyboardInterrupt:
+            # Ctrl-C (or SIGTERM, see below): keep what was learned; --resume continues from here
+            bar.close()
+            if pos.batch > 0:
+                end_of_period(partial=True)
+            writer.close()
+            plot_losses(out, metrics)
+            print(f"interrupted at step {pos.step}; resume with --resume", file=sys.stderr)
+            raise
         bar.close()
         if stop:
             stopped_by = stop
@@ -599,6 +614,10 @@ def train(
     writer.close()
     plot_losses(out, metrics)
     return TrainResult(out, pos.epoch, pos.step, pos.best_val, metrics, stopped_by)
+
+
+def _raise_interrupt(signum: int, frame: Any) -> None:
+    raise KeyboardInterrupt(f"signal {signum}")
 
 
 def _train_epoch(

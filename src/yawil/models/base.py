@@ -105,8 +105,11 @@ class DrivingModel(nn.Module):
         return used_guidance, used_command
 
     def stage_features(self, image: Tensor) -> list[Tensor]:
-        """Feature maps [B, C, h, w] of each stage of the perception, from a [0, 1] image."""
-        raise NotImplementedError
+        """Feature maps [B, C, h, w] of each stage of the perception, from a [0, 1] image.
+
+        Every registered model defines it (its perception's stages); the base class has no perception.
+        """
+        raise TypeError(f"{type(self).__name__} defines no perception stages (stage_features)")
 
     @torch.no_grad()
     def activation_maps(self, image: Tensor) -> list[Tensor]:

@@ -128,6 +128,26 @@ def _walk(lanes: Any, rng: np.random.Generator, want: str) -> Route | None:
     return sample_route(lanes, seq, ss, sg).route  # type: ignore[no-any-return]
 
 
+def accept_route(
+    route: Route, start: Pose, goal: Pose, kind: str, minimum: float, seen: set[tuple[int, int, int, int]]
+) -> tuple[str, ...] | None:
+    """The turns of a drawn route if it joins the task's list, else None.
+
+    It must be long enough, of the task's kind, and distinct: not the same start/goal cells (10 m grid)
+    as a route already taken (`seen` is updated). Shared by the embedded and the CARLA route generators.
+    """
+    if route.length < minimum:
+        return None
+    got, names = classify(route)
+    if kind != "navigation" and got != kind:
+        return None
+    cell = (round(start.x / 10), round(start.y / 10), round(goal.x / 10), round(goal.y / 10))
+    if cell in seen:
+        return None
+    seen.add(cell)
+    return names
+
+
 def _draw(
     lanes: Any, rng: np.random.Generator, kind: str, town: str, make: Callable[[], Route | None]
 ) -> list[RouteSpec]:
@@ -140,16 +160,9 @@ def _draw(
             continue
         start, goal = _endpoints(cand)
         route = _replan(lanes, start, goal)  # what the world will drive
-        if route.length < minimum:
+        names = accept_route(route, start, goal, kind, minimum, seen)
+        if names is None:
             continue
-        got, names = classify(route)
-        if kind != "navigation" and got != kind:
-            continue
-        # distinct routes: not the same start/goal cells (10 m grid) twice
-        cell = (round(start.x / 10), round(start.y / 10), round(goal.x / 10), round(goal.y / 10))
-        if cell in seen:
-            continue
-        seen.add(cell)
         out.append(RouteSpec(len(out), start, goal, round(route.length, 2), names))
         if len(out) == ROUTES_PER_TASK:
             return out

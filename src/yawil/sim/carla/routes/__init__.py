@@ -54,7 +54,7 @@ def _walk(topo: CarlaTopology, rng: np.random.Generator, want: str) -> Route | N
 
 def generate_routes(topo: CarlaTopology, town: str, seed: int = 0, per_task: int | None = None) -> dict[str, list[Any]]:
     """Route lists straight, one_turn, navigation for a CARLA town, drawn on its topology from the seed."""
-    from yawil.bench.routegen import classify
+    from yawil.bench.routegen import accept_route
     from yawil.bench.suites import MIN_LENGTH, ROUTES_PER_TASK, RouteSpec
 
     if town not in TOWNS:
@@ -72,13 +72,9 @@ def generate_routes(topo: CarlaTopology, town: str, seed: int = 0, per_task: int
                 continue
             start, goal = _endpoints(cand)
             route = topo.plan(start, goal).route  # what CarlaWorld will drive
-            got, names = classify(route)
-            if route.length < minimum or (kind != "navigation" and got != kind):
+            names = accept_route(route, start, goal, kind, minimum, seen)
+            if names is None:
                 continue
-            cell = (round(start.x / 10), round(start.y / 10), round(goal.x / 10), round(goal.y / 10))
-            if cell in seen:
-                continue
-            seen.add(cell)
             specs.append(RouteSpec(len(specs), start, goal, round(route.length, 2), names))
             if len(specs) == n:
                 break

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import math
+from collections.abc import Iterator
 
 import numpy as np
 
@@ -15,6 +16,15 @@ POLE_COLOR = (0.25, 0.25, 0.27)
 TREE_COLOR = (0.2, 0.4, 0.18)
 
 
+def road_frames(layout: Layout, lanes: LaneGraph) -> Iterator[tuple[int, int, np.ndarray, np.ndarray, float, float]]:
+    """Each road as (node a, node b, position of a, unit direction a -> b, length, heading)."""
+    for a, b in layout.roads:
+        pa, pb = lanes.node_xy[a], lanes.node_xy[b]
+        length = float(np.linalg.norm(pb - pa))
+        u = (pb - pa) / length
+        yield a, b, pa, u, length, math.atan2(u[1], u[0])
+
+
 def place_buildings(layout: Layout, lanes: LaneGraph, regions: RegionMap) -> list[Box]:
     """Rows of buildings behind both sidewalks of every road, never on road, sidewalk or each other."""
     rng = np.random.default_rng(layout.buildings.seed)
@@ -22,11 +32,7 @@ def place_buildings(layout: Layout, lanes: LaneGraph, regions: RegionMap) -> lis
     palette = layout.style.building_palette
     W, sw = layout.lane_width, layout.sidewalk_width
     out: list[Box] = []
-    for a, b in layout.roads:
-        pa, pb = lanes.node_xy[a], lanes.node_xy[b]
-        length = float(np.linalg.norm(pb - pa))
-        u = (pb - pa) / length
-        yaw = math.atan2(u[1], u[0])
+    for a, b, pa, u, length, yaw in road_frames(layout, lanes):
         for side in (1.0, -1.0):
             n = side * np.array([-u[1], u[0]])
             s = setback(layout, a) + sw
@@ -53,11 +59,7 @@ def place_props(layout: Layout, lanes: LaneGraph, regions: RegionMap) -> list[Bo
     rng = np.random.default_rng(layout.buildings.seed + 1)
     W, sw = layout.lane_width, layout.sidewalk_width
     out: list[Box] = []
-    for a, b in layout.roads:
-        pa, pb = lanes.node_xy[a], lanes.node_xy[b]
-        length = float(np.linalg.norm(pb - pa))
-        u = (pb - pa) / length
-        yaw = math.atan2(u[1], u[0])
+    for a, b, pa, u, length, yaw in road_frames(layout, lanes):
         lo, hi = setback(layout, a) + 6.0, length - setback(layout, b) - 6.0
         for side in (1.0, -1.0):
             n = side * np.array([-u[1], u[0]])

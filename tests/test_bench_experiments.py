@@ -77,3 +77,29 @@ def test_learned_agent_is_deterministic_across_runs_and_workers(tmp_path: Path) 
     for r in one:
         assert by_route[r["route_id"]]["trajectory"] == r["trajectory"]
         assert by_route[r["route_id"]]["steps"] == r["steps"]
+
+
+def test_models_trained_side_by_side_equal_those_trained_one_by_one(tmp_path: Path) -> None:
+    """The standard profile trains two models at once in processes: that must not change a single weight."""
+    from dataclasses import replace
+
+    import torch
+
+    from yawil.bench.experiments import train_all
+    from yawil.data import write_synthetic_dataset
+
+    data = tmp_path / "data"
+    write_synthetic_dataset(data, episodes=4, frames=8, k=15, seed=0)
+    p = replace(get_profile("standard"), epochs=1, batch_size=8, max_steps=2, train_workers=2, train_threads=1)
+    jobs = [("full", "cil"), ("full", "yaw-guided")]
+    logs: list[str] = []
+    side = train_all(tmp_path / "side", {"full": data}, jobs, p, 0, logs.append)
+    one = train_all(tmp_path / "one", {"full": data}, jobs, replace(p, train_workers=1), 0, logs.append)
+    assert set(side) == set(one) == set(jobs)
+    for key in jobs:
+        a = torch.load(side[key], map_location="cpu", weights_only=False)["state_dict"]
+        b = torch.load(one[key], map_location="cpu", weights_only=False)["state_dict"]
+        assert a.keys() == b.keys() and all(torch.equal(a[k], b[k]) for k in a), key
+    assert (tmp_path / "side" / "models" / "full" / "cil" / ".done").exists()
+    again = train_all(tmp_path / "side", {"full": data}, jobs, p, 0, logs.append)  # done: skipped, same files
+    assert again == side and any("done, skipped" in line for line in logs)

@@ -14,8 +14,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         "(guided) or wrong commands (CIL), write table2.md. Every stage is skipped when its output exists.",
     )
     p.add_argument("which", choices=("square", "noise"))
-    p.add_argument("--profile", default="quick", choices=("quick", "paper"),
-                   help="quick: minutes-scale smoke run; paper: the paper's budgets (default quick)")
+    p.add_argument("--profile", default="quick", choices=("quick", "standard", "paper"),
+                   help="quick: minutes-scale smoke run; standard: about an hour on 2 cores, the figures of "
+                   "docs/benchmark.md; paper: the paper's budgets (default quick)")
     p.add_argument("--out", default="results/square", help="experiment folder (default results/square)")
     p.add_argument("--seed", type=int, default=0, help="seed of collection and training (default 0)")
     p.add_argument("--models", default=None, help="noise: comma-separated methods to test instead of the passing ones")

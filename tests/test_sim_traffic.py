@@ -6,7 +6,7 @@ import math
 
 import numpy as np
 
-from yawil.sim import Control, EventKind, Pose, Scenario
+from yawil.sim import Control, EventKind, Pose, RoadOption, Scenario
 from yawil.sim.criteria import boxes_overlap
 from yawil.sim.town.lanes import LaneGraph
 from yawil.sim.town.lights import RED
@@ -292,3 +292,32 @@ def test_pedestrian_at_a_blocked_crosswalk_walks_elsewhere() -> None:
     for _ in range(40):
         ped.step(0.1, rng, car)
     assert ped.dest[0] != b and np.hypot(*(ped.xy[0] - walk.xy[a])) > 1.0
+
+
+def test_no_vehicle_pulls_out_across_an_ego_committed_to_a_junction() -> None:
+    """Town02 regular route 8 seed 1: the ego's nose was in the box at 5 m/s when a car waiting at the opposite
+    entry turned left across it; each then stood in the other's path until the timeout."""
+    w = EmbeddedWorld()
+    w.reset(Scenario(town="town02", vehicles=0, pedestrians=0, camera=False), seed=0)
+    lanes, lights = w.town.lanes, w.lights  # type: ignore[union-attr]
+    west, east = 13, 10  # into the junction at x = 120 m: from the east (y = 101.75), from the 20 m block
+    node = lanes.lanes[west].end_node
+    left = next(c for c in lanes.node_connectors[node]
+                if lanes.lanes[c].entry == east and lanes.lanes[c].option is RoadOption.LEFT)
+    veh = _one_vehicle(lanes, east, float(lanes.length[east]), 0.0, left)  # waiting at its junction entry
+    w.vehicles = veh
+    group = lights.group[lanes.light_of_lane[east]]
+    assert lights.group[lanes.light_of_lane[west]] == group  # opposite approaches: both green
+    lights.offset[lights.node == node] = group * lights.slot + 1.0
+    box = float(lanes.lanes[west].ctrl[3, 0])  # x where the ego's lane meets the junction
+    for speed, committed in ((0.0, False), (5.0, True)):  # 1 m before the box: too late to stop at 5 m/s
+        w.ego.x, w.ego.y, w.ego.yaw, w.ego.speed = box + 2.3 + 1.0, 101.75, math.pi, speed
+        assert (len(w._ego_connectors()) > 0) is committed
+
+    while w.ego.x > box - 20.0:  # the ego drives straight through
+        w.step(Control(throttle=0.3))
+        if w.ego.x > lanes.node_xy[node][0] - 3.0:  # still before or on the left turn's path
+            assert veh.lane[0] == east
+    for _ in range(30):
+        w.step(Control(brake=1.0))
+    assert veh.lane[0] != east  # then it turns

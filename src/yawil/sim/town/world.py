@@ -177,12 +177,27 @@ class EmbeddedWorld:
         return (self.ego.x, self.ego.y, self.ego.yaw, self.params.length, self.params.width)
 
     def _ego_connectors(self) -> np.ndarray:
-        """Junction connectors the ego's body overlaps (so traffic yields to it)."""
+        """Junction connectors the ego occupies or is committed to, so traffic yields to it.
+
+        In a junction: the connectors within 2.5 m of its centre. Before one: every connector leaving its lane
+        once its front bumper could no longer stop short of the junction at traffic's own comfortable
+        deceleration (or is already in it), since nobody can tell which way it will turn. Without that, a
+        vehicle waiting at its junction entry pulled out across the ego whose nose was already in the box,
+        and each then stood in the other's path for ever (town02, regular route 8 seed 1).
+        """
         assert self.town is not None
         code = self.town.regions.query_point(self.ego.x, self.ego.y)
-        if code > JUNCTION_BASE:
-            return np.zeros(0, dtype=np.int64)
         lanes = self.town.lanes
+        if code > JUNCTION_BASE:
+            lane, s = self._ego_road_lane()
+            if lane < 0 or not lanes.is_junction(lanes.lanes[lane].end_node):
+                return np.zeros(0, dtype=np.int64)
+            along = math.cos(self.ego.yaw - self._road_yaw[lane]) > 0.5  # driving along it, not across
+            to_box = lanes.length[lane] - s - self.params.length / 2
+            v = max(self.ego.speed, 0.0)
+            if along and to_box < v * v / (2 * Vehicles.B_COMF):
+                return np.array(lanes.lanes[lane].successors, dtype=np.int64)
+            return np.zeros(0, dtype=np.int64)
         conns = np.array(lanes.node_connectors[JUNCTION_BASE - code], dtype=np.int64)
         m = np.isin(lanes.sample_lane, conns)
         d = np.hypot(lanes.sample_xy[m, 0] - self.ego.x, lanes.sample_xy[m, 1] - self.ego.y)

@@ -340,3 +340,27 @@ def test_a_pedestrian_stepping_out_too_close_to_stop_for_is_passed_not_braked_in
     e2 = Expert()
     c2 = e2.act(observe(route, 10.0, 0.0, 0.0, 5.5, agents=(closer,)))
     assert c2.brake > 0.0
+
+
+def test_standing_for_crossing_traffic_it_starts_only_after_a_second_clear() -> None:
+    """Town02 seed 44: a crossing prediction switched off for 0.7 s, the ego started, and such gaps had it
+    creep onto the crosswalk past its stop line. Standing for an agent outside its lane, it now waits until
+    the agent has been gone for `restart_hold` seconds."""
+    route = make_route(straight(0.0, 100.0), turn=(30, 42), option=RoadOption.STRAIGHT, lights=((30, 3),))
+    green = (LightState(3, "green", 30.0, 0.0, 0.0),)
+    x = 30.0 - 1.0 - 0.5 * ExpertConfig().length  # waiting 1 m before the stop line
+    crossing = (vehicle(36.0, -5.0, math.pi / 2, 3.0),)  # in the box, about to cross the ego's path
+    e = Expert()
+    controls = []
+    for frame in range(25):
+        agents = crossing if frame < 5 or frame == 17 else ()  # gone at frame 5 ... back for one frame at 17
+        controls.append(e.act(observe(route, x, 0.0, 0.0, 0.0, lights=green, agents=agents, frame=frame)))
+        if frame < 5:
+            assert e.state.reason == "junction"
+    assert all(c.throttle == 0.0 and c.brake > 0.0 for c in controls[:14])  # last seen at 0.4 s: held to 1.4 s
+    assert controls[14].throttle > 0.0 and controls[16].throttle > 0.0  # then it starts
+    assert controls[17].brake > 0.0  # (the agent back: stop again)
+    assert all(c.throttle == 0.0 for c in controls[18:])  # and hold another second, not 0.1 s
+    moving = Expert()  # already rolling, nothing is held: what is gone is gone
+    moving.act(observe(route, x - 10.0, 0.0, 0.0, 4.0, lights=green, agents=crossing, frame=0))
+    assert moving.act(observe(route, x - 9.6, 0.0, 0.0, 4.0, lights=green, frame=1)).throttle > 0.0

@@ -64,6 +64,8 @@ class ExpertConfig:
     crosswalk_watch: float = 2.5  # m beyond the corridor where a pedestrian at a crosswalk may step in
     pedestrian_max_speed: float = 1.6  # m/s a standing pedestrian is assumed able to walk at
     preview_min: float = 30.0  # m of route examined ahead (at least)
+    restart_hold: float = 1.0  # s an agent outside the lane must stay clear before the ego starts from a stop
+    restart_hold_speed: float = 0.5  # m/s below which the ego counts as standing for that rule
     # goal
     goal_overshoot: float = 0.5  # m past the route's end where the centre is planned to stop
     # PID on speed (throttle positive, brake negative)
@@ -256,6 +258,7 @@ class Expert:
         self._prev_yaw: dict[int, float] = {}  # agents' headings at the previous frame, for their yaw rates
         self._prev_frame: int | None = None
         self._rates: dict[int, float] = {}
+        self._hold: tuple[float, str, int | None, float] | None = None  # (stop s, reason, agent, last seen)
 
     def reset(self) -> None:
         """Forget the episode (route, PID memory, light decisions)."""
@@ -266,11 +269,13 @@ class Expert:
         self._light_decisions = {}
         self._prev_yaw = {}
         self._prev_frame = None
+        self._hold = None
 
     # ------------------------------------------------------------------------------------------ control
     def act(self, obs: Observation) -> Control:
         if self._cache is None or self._cache.route is not obs.route:
             self._cache = _RouteCache(obs.route)
+            self._hold = None
         rc = self._cache
         pos = np.array([obs.pose.x, obs.pose.y], dtype=np.float64)
         seg, s_ego, lateral = rc.project(pos, int(obs.route_index))
@@ -383,9 +388,35 @@ class Expert:
         preview = max(cfg.preview_min, speed * speed / (2 * cfg.comfort_decel) + 15.0,
                       speed * cfg.vehicle_horizon + cfg.plan_accel * cfg.vehicle_horizon**2 / 2 + 10.0)
         preview = min(preview, cfg.cruise_speed * cfg.vehicle_horizon + 20.0)
-        agents = self._agent_hazards(obs, rc, s_ego, front, speed, preview)
-        hazards.extend(self._keep_clear(h, rc, s_ego, front) for h in agents)
+        followed, watched = self._agent_hazards(obs, rc, s_ego, front, speed, preview)
+        hazards.extend(self._keep_clear(h, rc, s_ego, front) for h in followed)
+        watched = [self._keep_clear(h, rc, s_ego, front) for h in watched]
+        hazards.extend(watched)
+        hazards.extend(self._restart_hold(watched, float(obs.time), s_ego, speed))
         return hazards
+
+    def _restart_hold(self, watched: list[Hazard], now: float, s_ego: float, speed: float) -> list[Hazard]:
+        """Once standing for an agent outside the ego's lane, start only after it stayed clear `restart_hold` s.
+
+        Predictions of crossing traffic and pedestrians switch on and off at their thresholds (a car turning
+        across the ego's path changes its predicted curve every frame), and each gap let the ego start and
+        creep a little further: it ended on the crosswalk past its stop line (town02 seed 44). A vehicle
+        followed in the ego's own lane is not held for: it moves off smoothly, and a queue should follow it.
+        """
+        cfg = self.config
+        stops = [h for h in watched if h.speed == 0.0]
+        if speed >= cfg.restart_hold_speed:
+            self._hold = None  # moving: the braking profiles handle what appears
+            return []
+        if stops:
+            h = min(stops, key=lambda z: z.distance)
+            self._hold = (s_ego + h.distance, h.reason, h.agent_id, now)
+            return []
+        if self._hold is None or not 0.0 <= now - self._hold[3] < cfg.restart_hold - 1e-9:
+            self._hold = None
+            return []
+        s_stop, reason, agent_id, _ = self._hold
+        return [Hazard(s_stop - s_ego, reason, 0.0, agent_id)]
 
     def _keep_clear(self, h: Hazard, rc: _RouteCache, s_ego: float, front: float) -> Hazard:
         """Never come to a stop inside a junction or on its crosswalks: wait before its stop line instead.
@@ -437,12 +468,13 @@ class Expert:
 
     def _agent_hazards(
         self, obs: Observation, rc: _RouteCache, s_ego: float, front: float, speed: float, preview: float
-    ) -> list[Hazard]:
-        """Vehicles and pedestrians in the corridor ahead, or predicted to cross it while the ego is there."""
+    ) -> tuple[list[Hazard], list[Hazard]]:
+        """Vehicles and pedestrians in the corridor ahead, or predicted to cross it while the ego is there:
+        (vehicles in the corridor, everything else)."""
         cfg = self.config
         agents = [a for a in obs.privileged.agents if math.hypot(a.x - obs.pose.x, a.y - obs.pose.y) < preview + 10.0]
         if not agents:
-            return []
+            return [], []
         # from 20 m behind, so that a vehicle following the ego projects onto its lane and is recognised
         proj = _Corridor(rc, max(s_ego - 0.5 * cfg.length - 20.0, 0.0), s_ego + preview)
         pos = np.array([[a.x, a.y] for a in agents])
@@ -460,6 +492,7 @@ class Expert:
         in_corr = d0 < margin + e_lat
         behind = in_corr & (s0 - e_lon < rear)  # beside or behind the ego in its lane: not ours to stop for
         out: list[Hazard] = []
+        followed: list[Hazard] = []
         for i in np.flatnonzero(in_corr & ~behind):
             if self._too_late_but_clear(float(s0[i] - e_lon[i]), float(s0[i] + e_lon[i]), float(d0[i]),
                                         float(e_lat[i]), float(spd[i] * abs(math.sin(rel0[i]))), front, rear, speed):
@@ -471,7 +504,8 @@ class Expert:
                 stop_at -= cfg.time_gap * v_along
             else:
                 v_along = 0.0
-            out.append(Hazard(stop_at - s_ego, "pedestrian" if is_ped[i] else "vehicle", v_along, agents[i].id))
+            (out if is_ped[i] else followed).append(
+                Hazard(stop_at - s_ego, "pedestrian" if is_ped[i] else "vehicle", v_along, agents[i].id))
 
         # moving agents that can reach the corridor within their horizon (the rest cannot conflict)
         horizon = np.where(is_ped, cfg.pedestrian_horizon, cfg.vehicle_horizon)
@@ -487,7 +521,7 @@ class Expert:
         if peds.size:
             out.extend(self._crosswalk_hazards(rc, proj, s_ego, front, speed, agents, peds, pos, yaw, spd, s0, d0,
                                                margin + e_lat))
-        return out
+        return followed, out
 
     def _crosswalk_hazards(
         self, rc: _RouteCache, proj: _Corridor, s_ego: float, front: float, speed: float, agents: list[AgentState],

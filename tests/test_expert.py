@@ -364,3 +364,21 @@ def test_standing_for_crossing_traffic_it_starts_only_after_a_second_clear() -> 
     moving = Expert()  # already rolling, nothing is held: what is gone is gone
     moving.act(observe(route, x - 10.0, 0.0, 0.0, 4.0, lights=green, agents=crossing, frame=0))
     assert moving.act(observe(route, x - 9.6, 0.0, 0.0, 4.0, lights=green, frame=1)).throttle > 0.0
+
+
+def test_a_vehicle_its_red_light_stops_is_not_crossing_traffic() -> None:
+    """Town02, dense: a car approaching its red light looked about to cross the ego's path, and the ego let
+    its short green go by. Traffic obeys the lights; a yellow it cannot stop for comfortably it still runs."""
+    route = make_route(straight(0.0, 100.0), turn=(30, 42), option=RoadOption.STRAIGHT, lights=((30, 3),))
+
+    def reason(state: str, y_car: float = -24.0) -> str:
+        lights = (LightState(3, "green", 30.0, 0.0, 0.0), LightState(4, state, 37.75, -10.0, math.pi / 2))
+        car = (vehicle(37.75, y_car, math.pi / 2, 6.0),)  # from the south at 6 m/s: across the path in ~3.5 s
+        e = Expert()
+        e.act(observe(route, 25.0, 0.0, 0.0, 5.0, lights=lights, agents=car))
+        return e.state.reason
+
+    assert reason("green") in ("junction", "vehicle")
+    assert reason("red") == "cruise"  # it stops at its line, 10 m before the ego's path
+    assert reason("yellow") == "cruise"  # 11.75 m to its line: 3 m/s^2 suffice, it stops
+    assert reason("yellow", -14.0) in ("junction", "vehicle")  # 1.75 m to its line at 6 m/s: it runs the yellow

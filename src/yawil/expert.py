@@ -59,6 +59,7 @@ class ExpertConfig:
     time_buffer_before: float = 1.0  # s: the agent reaching a point this long before the ego still conflicts
     time_buffer_after: float = 1.5  # s: and this long after the ego left it
     head_on_deg: float = 160.0  # predicted crossings at a larger angle are oncoming traffic on a curve
+    traffic_yellow_decel: float = 3.0  # other vehicles stop for a yellow light if this deceleration suffices
     junction_watch: float = 4.0  # m around the junction path where a crossing vehicle blocks entry
     crosswalk_after_exit: float = 4.0  # m after a junction's exit kept clear (its crosswalk)
     crosswalk_watch: float = 2.5  # m beyond the corridor where a pedestrian at a crosswalk may step in
@@ -513,9 +514,11 @@ class Expert:
         movers = np.flatnonzero(~in_corr & (spd >= 0.2) & reach)
         if movers.size:
             ahead = _Corridor(rc, max(front - 1.0, 0.0), s_ego + preview, stride=2)
+            reach_m = self._room_before_lights(obs.privileged.lights, pos[movers], yaw[movers], spd[movers],
+                                               length[movers], is_ped[movers])
             out.extend(self._crossing_hazards(
                 [agents[i] for i in movers], pos[movers], yaw[movers], spd[movers], length[movers], width[movers],
-                is_ped[movers], margin[movers], ahead, rc, s_ego, front, speed))
+                is_ped[movers], margin[movers], ahead, rc, s_ego, front, speed, reach_m))
         out.extend(self._junction_hazards(rc, front, s0, d0, h0, yaw, spd, e_lat, in_corr, is_ped, agents))
         peds = np.flatnonzero(is_ped & ~in_corr & (d0 < margin + e_lat + cfg.crosswalk_watch))
         if peds.size:
@@ -564,13 +567,37 @@ class Expert:
             return False  # already touching the ego's path
         return (far - rear) / max(speed, 0.1) < room / max(v_lat, 0.1)
 
+    def _room_before_lights(self, lights: tuple[LightState, ...], pos: np.ndarray, yaw: np.ndarray, spd: np.ndarray,
+                            length: np.ndarray, is_ped: np.ndarray) -> np.ndarray:
+        """Metres each vehicle can still drive before a light stops it (inf: none does).
+
+        Traffic obeys the lights: a vehicle in the lane of a red light stops at its line, and at a yellow one
+        if `traffic_yellow_decel` suffices (the simulator's vehicles and CARLA's autopilot both do). Without
+        this, a car approaching its red light looked like one about to cross the ego's path, and the ego
+        let the few seconds of a green go by waiting for it (town02's short greens, dense traffic).
+        """
+        room = np.full(len(pos), np.inf)
+        for ls in lights:
+            if ls.state == "green":
+                continue
+            c, s = math.cos(ls.yaw), math.sin(ls.yaw)
+            rx, ry = ls.x - pos[:, 0], ls.y - pos[:, 1]
+            ahead = rx * c + ry * s - 0.5 * length  # front bumper to the stop line
+            lane = (np.abs(-rx * s + ry * c) < 1.75) & (np.abs(_wrap(yaw - ls.yaw)) < math.radians(30.0))
+            stops = ~is_ped & lane & (ahead > -0.5) & (ahead < 60.0)
+            if ls.state == "yellow":
+                stops &= ahead >= spd * spd / (2.0 * self.config.traffic_yellow_decel)
+            room = np.where(stops, np.minimum(room, np.maximum(ahead, 0.0)), room)
+        return room
+
     def _crossing_hazards(
         self, agents: list[AgentState], pos: np.ndarray, yaw: np.ndarray, spd: np.ndarray, length: np.ndarray,
         width: np.ndarray, is_ped: np.ndarray, margin: np.ndarray, proj: _Corridor, rc: _RouteCache,
-        s_ego: float, front: float, speed: float,
+        s_ego: float, front: float, speed: float, room: np.ndarray | None = None,
     ) -> list[Hazard]:
-        """Predict each agent (vehicles keep their yaw rate through at most a quarter turn, as in a junction;
-        pedestrians walk straight); a conflict is the agent in the corridor while the ego passes there."""
+        """Predict each agent (vehicles keep their yaw rate through at most a quarter turn, as in a junction,
+        and stop at a light that stops them; pedestrians walk straight); a conflict is the agent in the
+        corridor while the ego passes there."""
         cfg = self.config
         dt = cfg.prediction_step
         t = np.arange(dt, max(cfg.vehicle_horizon, cfg.pedestrian_horizon) + 1e-9, dt)
@@ -578,7 +605,11 @@ class Expert:
                          for a, ped in zip(agents, is_ped, strict=True)])
         turn = np.clip(rate[:, None] * (t[None, :] - 0.5 * dt), -0.5 * math.pi, 0.5 * math.pi)  # mid-step
         theta = yaw[:, None] + turn  # (m, T)
-        step = (spd[:, None] * dt)[..., None] * np.stack([np.cos(theta), np.sin(theta)], axis=-1)
+        travel = spd[:, None] * t[None, :]
+        if room is not None:
+            travel = np.minimum(travel, room[:, None])
+        seg = np.diff(travel, axis=1, prepend=0.0)
+        step = seg[..., None] * np.stack([np.cos(theta), np.sin(theta)], axis=-1)
         p = pos[:, None, :] + np.cumsum(step, axis=1)  # (m, T, 2)
         s, d, h = proj.project(p)
         rel = _wrap(theta - h)

@@ -2,16 +2,21 @@
 
 Same format as yawil's own route files (`yawil-routes/1`: 25 routes per task list straight, one_turn,
 navigation, start and goal as map coordinates in yawil's frame), so `yawil.bench.suites.load_routes(town,
-folder=CARLA_ROUTES_DIR)` reads them. They can only be made from the real map, so from a live server:
-`python -m yawil.sim.carla.routes --host HOST --port 2000 --town town01` (see docs/carla.md). The rules
-are the embedded towns' (yawil.bench.routegen): routes are drawn as walks on the topology, re-planned from
-their end points exactly as CarlaWorld will plan them, and classified by `yawil.bench.routegen.classify`.
-A generated file is validated against the server's map: every start and goal snaps to a driving lane
-within 2 m and every goal is reachable. (This tool imports yawil.bench lazily: it writes benchmark data.)
+folder=CARLA_ROUTES_DIR)` reads them. They need the real map, which comes from one of two sources:
+a live server (`python -m yawil.sim.carla.routes --host HOST --port 2000 --town town01`) or, with no
+server, CARLA's own OpenDRIVE file of the town (`--xodr Town01.xodr --town town01`): `carla.Map(name,
+xodr_text)` builds the same map client-side that the server hands out, minus traffic-light actors (which
+route files do not store). The rules are the embedded towns' (yawil.bench.routegen): routes are drawn as
+walks on the topology, re-planned from their end points exactly as CarlaWorld will plan them, and
+classified by `yawil.bench.routegen.classify`. A generated file is validated against the map (every start
+and goal snaps to a driving lane within 2 m, every goal is reachable, lengths match) and records its
+source (`source`: kind, map name, the xodr's sha256, the carla client version) so a later check can tell
+which map it was made from. (This tool imports yawil.bench lazily: it writes benchmark data.)
 """
 
 from __future__ import annotations
 
+import hashlib
 import math
 from pathlib import Path
 from typing import Any
@@ -99,9 +104,54 @@ def validate_routes(topo: CarlaTopology, lists: dict[str, list[Any]], where: str
                                  f"{spec.length_m:.1f} m (a different map version?)")
 
 
+def client_version() -> str:
+    """The installed `carla` client package's version (the wheel's metadata; the module has no __version__)."""
+    from importlib.metadata import PackageNotFoundError, version
+
+    try:
+        return version("carla")
+    except PackageNotFoundError:
+        raise ValueError("the `carla` client package is not installed: pip install -c constraints.txt carla==0.9.16") from None
+
+
+def topology_from_xodr(path: str | Path, town: str) -> tuple[CarlaTopology, dict[str, Any]]:
+    """The real map of `town` built client-side from CARLA's OpenDRIVE file, and the route file's `source` record."""
+    import carla
+
+    from yawil.sim.carla.world import carla_town
+
+    if town not in TOWNS:
+        raise ValueError(f"no route rules for CARLA town {town!r}; choose one of {', '.join(TOWNS)}")
+    p = Path(path)
+    try:
+        data = p.read_bytes()
+    except OSError as err:
+        raise ValueError(f"{p}: cannot read the OpenDRIVE file ({err.strerror or err})") from None
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as err:
+        raise ValueError(f"{p}: an OpenDRIVE file is UTF-8 XML; byte {err.start} is not UTF-8") from None
+    if "<OpenDRIVE" not in text[:4096]:
+        raise ValueError(f"{p}: no <OpenDRIVE> element near the start; expected CARLA's {carla_town(town)}.xodr")
+    try:
+        cmap = carla.Map(carla_town(town), text)
+    except RuntimeError as err:
+        raise ValueError(f"{p}: carla.Map cannot build a map from this OpenDRIVE file ({err})") from None
+    try:
+        topo = CarlaTopology.from_carla_map(cmap)
+    except ValueError as err:
+        raise ValueError(f"{p}: {err}") from None
+    source = {"kind": "xodr", "map": topo.name, "xodr_file": p.name, "xodr_sha256": hashlib.sha256(data).hexdigest(),
+              "carla_client": client_version()}
+    return topo, source
+
+
 def write_route_file(topo: CarlaTopology, town: str, seed: int = 0, folder: Path | None = None,
-                     per_task: int | None = None) -> Path:
-    """Generate, check and atomically write `<folder>/<town>.json` (default: this package's folder)."""
+                     per_task: int | None = None, source: dict[str, Any] | None = None) -> Path:
+    """Generate, check and atomically write `<folder>/<town>.json` (default: this package's folder).
+
+    `source` says which map made the file (`topology_from_xodr`'s record, or a server's); it is stored as is.
+    """
     from yawil.bench.records import write_json_atomic
     from yawil.bench.suites import ROUTE_FORMAT, check_task_routes
 
@@ -110,11 +160,52 @@ def write_route_file(topo: CarlaTopology, town: str, seed: int = 0, folder: Path
         for name, specs in lists.items():
             check_task_routes(town, name, specs, f"generated CARLA {town}.{name}")
     validate_routes(topo, lists, f"generated CARLA {town}")
+    src = dict(source) if source is not None else {"kind": "map", "map": topo.name}
+    if src.get("kind") == "xodr":
+        how = f"--xodr {src.get('xodr_file', 'PATH')}"
+    elif src.get("kind") == "server":
+        how = "--host HOST --port PORT"
+    else:
+        how = "(a carla.Map given in Python)"
     path = (folder or CARLA_ROUTES_DIR) / f"{town}.json"
     write_json_atomic(path, {
-        "format": ROUTE_FORMAT, "town": town, "map": topo.name,
-        "generated_by": f"python -m yawil.sim.carla.routes --town {town} --seed {seed}",
+        "format": ROUTE_FORMAT, "town": town, "map": topo.name, "source": src,
+        "generated_by": f"python -m yawil.sim.carla.routes {how} --town {town} --seed {seed}",
         "rules": "docs/benchmark.md#routes",
         "routes": {name: [s.to_json() for s in specs] for name, specs in lists.items()},
     })
     return path
+
+
+def load_carla_routes(town: str, folder: Path | None = None) -> tuple[dict[str, list[Any]], dict[str, Any]]:
+    """A CARLA route file's lists (checked against the protocol) and its `source` record, without any map.
+
+    Checks what needs no map: the protocol's counts, lengths and turn structure (`load_routes`), the
+    `source` record (its kind and map name fit the town), and that no route starts where it ends.
+    """
+    import json
+
+    from yawil.bench.suites import load_routes, route_file
+    from yawil.sim.carla.world import carla_town
+
+    if town not in TOWNS:
+        raise ValueError(f"no CARLA route file for town {town!r}; choose one of {', '.join(TOWNS)}")
+    path = route_file(town, folder or CARLA_ROUTES_DIR)
+    if not path.exists():
+        raise ValueError(f"no CARLA route file for {town} at {path}; make it with `python -m yawil.sim.carla.routes "
+                         f"--xodr {carla_town(town)}.xodr --town {town}` (no server needed) or `--host HOST --town {town}`")
+    lists = load_routes(town, path.parent)
+    src = json.loads(path.read_text(encoding="utf-8")).get("source")
+    if not isinstance(src, dict) or src.get("kind") not in ("xodr", "server", "map"):
+        raise ValueError(f"{path}: field 'source' must be an object with kind 'xodr', 'server' or 'map', got {src!r}")
+    if str(src.get("map", "")).rsplit("/", 1)[-1] != carla_town(town):
+        raise ValueError(f"{path}: source.map is {src.get('map')!r}, expected {carla_town(town)!r} for {town}")
+    if src["kind"] == "xodr":
+        sha = src.get("xodr_sha256")
+        if not (isinstance(sha, str) and len(sha) == 64 and all(c in "0123456789abcdef" for c in sha)):
+            raise ValueError(f"{path}: source.xodr_sha256 must be 64 lowercase hex digits, got {sha!r}")
+    for name, specs in lists.items():
+        for spec in specs:
+            if math.hypot(spec.goal.x - spec.start.x, spec.goal.y - spec.start.y) < 1.0:
+                raise ValueError(f"{path}: routes.{name}[{spec.id}] starts where it ends ({spec.start})")
+    return lists, src

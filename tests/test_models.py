@@ -108,6 +108,27 @@ def test_linear_attention_matches_the_formula() -> None:
     torch.testing.assert_close(block(local, torch.randn(2, 10))[1], att)
 
 
+def test_yilratt_without_layer4_gives_the_papers_outputs() -> None:
+    """Skipping layer4 (the default) is exact up to rounding, because <u, g> cancels in the softmax."""
+    paper = small("yilratt", compute_global=True).eval()
+    fast = small("yilratt").eval()
+    assert fast.config["compute_global"] is False
+    fast.load_state_dict(paper.state_dict())
+    x = inputs(paper, 3, (64, 96))
+    with torch.no_grad():
+        a, b = paper(**x), fast(**x)
+    torch.testing.assert_close(b.actions, a.actions, atol=1e-5, rtol=1e-4)
+    torch.testing.assert_close(b.speed, a.speed, atol=1e-5, rtol=1e-4)
+    for ma, mb in zip(a.attention, b.attention, strict=True):
+        torch.testing.assert_close(mb, ma, atol=1e-6, rtol=1e-4)
+    calls: list[str] = []
+    fast.backbone.layer4.register_forward_hook(lambda *_: calls.append("layer4"))
+    paper.backbone.layer4.register_forward_hook(lambda *_: calls.append("paper layer4"))
+    with torch.no_grad():
+        fast(**x), paper(**x)
+    assert calls == ["paper layer4"]  # the default never runs layer4
+
+
 @pytest.mark.parametrize("name", ["cil", "cilrs"])
 def test_command_selects_branch(name: str) -> None:
     model = small(name).eval()

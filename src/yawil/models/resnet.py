@@ -23,11 +23,11 @@ def build_resnet34() -> ResNet:
     return net
 
 
-def resnet_stages(net: ResNet, x: Tensor) -> list[Tensor]:
-    """Outputs of layer1..layer4 for a normalised image."""
+def resnet_stages(net: ResNet, x: Tensor, stages: int = 4) -> list[Tensor]:
+    """Outputs of layer1..layer`stages` for a normalised image (fewer stages: the rest is not computed)."""
     x = net.maxpool(net.relu(net.bn1(net.conv1(x))))
     out = []
-    for layer in (net.layer1, net.layer2, net.layer3, net.layer4):
+    for layer in (net.layer1, net.layer2, net.layer3, net.layer4)[:stages]:
         x = layer(x)
         out.append(x)
     return out

@@ -23,8 +23,13 @@ from yawil.models.resnet import STAGE_CHANNELS, build_resnet34, load_imagenet_we
 class YILRatt(DrivingModel):
     """Yaw-guided imitation learning with ResNet34 and attention (the paper's Figure 2)."""
 
-    def __init__(self, guidance: str = "yaw", guidance_dim: int | None = None, dropout: float = 0.5) -> None:
+    def __init__(self, guidance: str = "yaw", guidance_dim: int | None = None, dropout: float = 0.5,
+                 compute_global: bool = False) -> None:
+        """`compute_global`: run layer4 and add g to the compatibility as the paper writes it. Off by default:
+        <u, g> is the same at every position and cancels in the softmax, so the outputs are the same up to
+        float rounding and layer4 (about a fifth of the backbone's time) is skipped (docs/models.md)."""
         super().__init__(guidance=guidance, guidance_dim=resolve_guidance(guidance, guidance_dim), uses_command=False)
+        self.compute_global = compute_global
         global_dim = STAGE_CHANNELS[-1]
         self.backbone = build_resnet34()
         self.attention = nn.ModuleList(LinearAttention(c, global_dim) for c in STAGE_CHANNELS[:3])
@@ -36,8 +41,12 @@ class YILRatt(DrivingModel):
 
     def perceive(self, image: Tensor) -> tuple[Tensor, list[Tensor]]:
         """Concatenated attended vectors P(o) [B, 1536] and the three attention maps."""
-        l1, l2, l3, l4 = resnet_stages(self.backbone, self.normalise(image))
-        g = l4.mean(dim=(2, 3))
+        if self.compute_global:
+            l1, l2, l3, l4 = resnet_stages(self.backbone, self.normalise(image))
+            g = l4.mean(dim=(2, 3))
+        else:
+            l1, l2, l3 = resnet_stages(self.backbone, self.normalise(image), stages=3)
+            g = l3.new_zeros(l3.shape[0], STAGE_CHANNELS[-1])
         vectors, maps = [], []
         for block, local in zip(self.attention, (l1, l2, l3), strict=True):
             v, a = block(local, g)

@@ -20,6 +20,8 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+from yawil.stages import read_marker, write_marker
+
 
 @dataclass(frozen=True)
 class DemoBudget:
@@ -81,16 +83,11 @@ def _stage(out: Path, name: str) -> Path:
 
 
 def _done(out: Path, name: str) -> dict[str, Any] | None:
-    p = _stage(out, name)
-    return json.loads(p.read_text()) if p.is_file() else None
+    return read_marker(_stage(out, name))
 
 
 def _mark(out: Path, name: str, info: dict[str, Any]) -> None:
-    p = _stage(out, name)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    tmp = p.with_suffix(".tmp")
-    tmp.write_text(json.dumps(info, indent=1))
-    tmp.replace(p)
+    write_marker(_stage(out, name), info)
 
 
 def run_demo(out: Path, budget: DemoBudget, seed: int = 0) -> Path:

@@ -19,8 +19,8 @@ Expected time (measured parts in docs/performance.md; the rest extrapolated from
 from __future__ import annotations
 
 import argparse
+import functools
 import json
-import time
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -68,6 +68,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
 
 def run(args: argparse.Namespace) -> int:
+    from yawil.stages import run_stage
+
     profile = PROFILES[args.profile]
     if args.pretrained and not Path(args.pretrained).is_file():
         raise SystemExit(f"yawil reproduce: --pretrained {args.pretrained}: no such file")
@@ -77,18 +79,11 @@ def run(args: argparse.Namespace) -> int:
         print(f"  stage {name}")
     if args.dry_run:
         return 0
+    def say(msg: str) -> None:
+        print(f"[reproduce] {msg}", flush=True)
+
     for name, fn in plan:
-        marker = Path(args.out) / "stages" / f"{name}.json"
-        if marker.is_file():
-            print(f"[reproduce] {name}: done before, skipped")
-            continue
-        print(f"[reproduce] {name} ...", flush=True)
-        t0 = time.perf_counter()
-        info = fn(args) or {}
-        marker.parent.mkdir(parents=True, exist_ok=True)
-        tmp = marker.with_suffix(".tmp")
-        tmp.write_text(json.dumps({"seconds": time.perf_counter() - t0, **info}, indent=1))
-        tmp.replace(marker)
+        run_stage(Path(args.out) / "stages" / f"{name}.json", functools.partial(fn, args), say, name)
     print(f"[reproduce] report: {Path(args.out) / 'report' / 'report.html'}")
     return 0
 

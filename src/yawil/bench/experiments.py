@@ -23,6 +23,7 @@ from typing import Any
 
 from yawil.bench.metrics import mean_std
 from yawil.bench.records import iter_results, write_json_atomic
+from yawil.stages import read_marker, write_marker
 
 METHODS: tuple[tuple[str, str], ...] = (
     ("xy-guided", "XY-guided"),
@@ -79,11 +80,11 @@ Log = Callable[[str], None]
 
 
 def _done(path: Path) -> bool:
-    return (path / ".done").exists()
+    return read_marker(path / ".done") is not None
 
 
 def _mark(path: Path, info: dict[str, Any]) -> None:
-    write_json_atomic(path / ".done", info)
+    write_marker(path / ".done", info)
 
 
 def _cli(argv: Sequence[str]) -> None:

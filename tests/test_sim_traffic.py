@@ -9,7 +9,7 @@ import numpy as np
 from yawil.sim import Control, EventKind, Pose, RoadOption, Scenario
 from yawil.sim.criteria import boxes_overlap
 from yawil.sim.town.lanes import LaneGraph
-from yawil.sim.town.lights import RED
+from yawil.sim.town.lights import RED, TrafficLights
 from yawil.sim.town.pedestrians import SIZE, Pedestrians
 from yawil.sim.town.regions import GROUND
 from yawil.sim.town.town import get_town
@@ -321,3 +321,19 @@ def test_no_vehicle_pulls_out_across_an_ego_committed_to_a_junction() -> None:
     for _ in range(30):
         w.step(Control(brake=1.0))
     assert veh.lane[0] != east  # then it turns
+
+
+def test_lights_at_both_ends_of_a_short_block_turn_green_together() -> None:
+    """Town02's 20 m block held two cars a cycle while its two junctions' phases ran at random offsets, and the
+    queues behind it spilled over the town (dense traffic, seed 31 timed out in them)."""
+    lanes = get_town("town02").lanes
+    lights = TrafficLights(lanes)
+    into_n4, block_e, into_n5, block_w = (int(lanes.light_of_lane[i]) for i in (8, 10, 13, 11))
+    for seed in range(5):
+        lights.reset(np.random.default_rng(seed))
+        for t in np.arange(0.0, 40.0, 0.5):
+            codes = lights.update(float(t))
+            assert codes[into_n4] == codes[block_e] == codes[into_n5] == codes[block_w]
+    assert len(lights.links) == 1  # only the 20 m block between x = 90 and 110 m
+    for town in ("town01", "square"):  # no short block: every junction keeps its own random offset
+        assert TrafficLights(get_town(town).lanes).links == []

@@ -2,7 +2,10 @@
 
 At each signalised junction, approaches are grouped so that opposite ones (headings within 30 degrees of
 reverse) share a phase. Groups take turns: green, yellow, then an all-red gap. Each junction's cycle starts at
-an offset drawn from the episode seed, so the same seed gives the same lights.
+an offset drawn from the episode seed, so the same seed gives the same lights. Two junctions joined by a
+block shorter than LINK_BLOCK (town02's 20 m block) are coordinated: the phases along that block turn green
+together, so the block drains while it fills instead of holding two cars a cycle (queues spilled back over
+the whole town in dense traffic).
 """
 
 from __future__ import annotations
@@ -14,6 +17,7 @@ import numpy as np
 from yawil.sim.town.lanes import LaneGraph
 
 GREEN, YELLOW, RED = 0, 1, 2
+LINK_BLOCK = 30.0  # m: junctions joined by a shorter block share their phase along it
 STATE_NAMES = ("green", "yellow", "red")
 
 
@@ -42,11 +46,21 @@ class TrafficLights:
         self.slot = green + yellow + all_red
         self.cycle = self.n_groups * self.slot
         self.offset = np.zeros(n)
+        # (node a, node b, light at a of the block's lane into a, light at b of its lane into b)
+        self.links: list[tuple[int, int, int, int]] = []
+        for to_b, to_a in lanes.road_lanes:
+            la, lb = int(lanes.light_of_lane[to_a]), int(lanes.light_of_lane[to_b])
+            if la < 0 or lb < 0 or lanes.length[to_b] >= LINK_BLOCK or self.cycle[la] != self.cycle[lb]:
+                continue
+            self.links.append((int(self.node[la]), int(self.node[lb]), la, lb))
         self.codes = np.full(n, RED, dtype=np.int64)
 
     def reset(self, rng: np.random.Generator) -> None:
         nodes = np.unique(self.node)
         per_node = dict(zip(nodes.tolist(), rng.uniform(0.0, 1.0, size=len(nodes)).tolist(), strict=True))
+        for a, b, la, lb in self.links:  # b's phase along the block starts with a's
+            shift = (self.group[lb] - self.group[la]) * self.slot / self.cycle[la]
+            per_node[b] = float(np.mod(per_node[a] + shift, 1.0))
         self.offset = np.array([per_node[int(n)] for n in self.node]) * self.cycle
         self.update(0.0)
 

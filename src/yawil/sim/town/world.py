@@ -50,6 +50,7 @@ COMMAND_LOOKAHEAD = 3  # waypoints ahead of the ego's projection whose option is
 PRIVILEGED_RADIUS = 50.0
 EGO_ID = 0
 EGO_COLOR = (0.15, 0.35, 0.75)
+GOAL_WINDOW = 10  # waypoints (metres): the goal counts once the ego's route progress is this close to the end
 
 
 def _check_scenario(sc: Scenario) -> None:
@@ -287,7 +288,8 @@ class EmbeddedWorld:
         events += self.c_light.update(t, prev, (ex, ey), self.ego.yaw, self._names)
         self.c_progress.update(ex, ey)
         self.c_distance.update(prev, (ex, ey))
-        events += self.c_goal.update(t, ex, ey)
+        if self.c_progress.max_index >= len(self.route.xy) - 1 - GOAL_WINDOW:
+            events += self.c_goal.update(t, ex, ey)  # a loop route's goal may lie next to its start
         events += self.c_timeout.update(t, ex, ey)
         if any(e.kind in (EventKind.GOAL_REACHED, EventKind.TIMEOUT) for e in events):
             self.done = True

@@ -465,3 +465,17 @@ def test_close_restores_settings_and_destroys_actors(server: FakeCarlaServer) ->
     assert not server.settings.synchronous_mode  # the settings found on connect
     assert [a.type_id for a in server.actors.values()] == ["traffic.traffic_light"]
     assert ("set_synchronous_mode", False) == server.tm_calls[-1]
+
+
+def test_a_reloaded_map_gets_its_new_light_actors(server: FakeCarlaServer) -> None:
+    """Loading a map makes new traffic-light actors: a topology cached before (a route-file check on connect, the
+    other town's episodes) must not keep the old ids, or every light would read as 'green'."""
+    w = CarlaWorld(client=server)
+    w.topology_of("Town01")
+    old_light = server.light.id
+    w.topology_of("Town02")
+    start, goal = left_turn(server)
+    obs = w.reset(Scenario(town="town01", start=start, goal=goal, camera=False), seed=0)
+    assert server.loads == ["Town01", "Town02", "Town01"] and server.light.id != old_light
+    assert obs.route.lights[0][1] == server.light.id and obs.privileged.lights[0].state == "red"
+    w.close()

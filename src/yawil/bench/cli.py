@@ -8,6 +8,8 @@
 from __future__ import annotations
 
 import argparse
+from collections.abc import Callable
+from typing import Any
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:  # type: ignore[type-arg]
@@ -88,39 +90,93 @@ def _run_suite(args: argparse.Namespace) -> int:
 
     spec = AgentSpec(args.agent, args.yaw_noise_deg, args.command_noise_p).validate()
     factory = None
-    routes_dir = args.routes_dir
     if args.backend != "embedded":
-        from yawil.sim import world_factory
-        from yawil.sim.carla.routes import CARLA_ROUTES_DIR
-
         if args.workers != 1:
             raise ValueError(f"--backend {args.backend} drives one server: use --workers 1 (got {args.workers})")
-        factory = world_factory(args.backend, host=args.host, port=args.port)
-        routes_dir = routes_dir or str(CARLA_ROUTES_DIR)
-    eps = episodes(
-        args.suite,
-        conditions=_split(args.condition),
-        tasks=_split([args.tasks] if args.tasks else None),
-        routes=args.routes,
-        seeds=args.seeds,
-        routes_folder=Path(routes_dir) if routes_dir else None,
-    )
+        eps, factory, world = _carla_episodes(args)
+    else:
+        world = None
+        eps = episodes(
+            args.suite,
+            conditions=_split(args.condition),
+            tasks=_split([args.tasks] if args.tasks else None),
+            routes=args.routes,
+            seeds=args.seeds,
+            routes_folder=Path(args.routes_dir) if args.routes_dir else None,
+        )
     out = Path(args.out) if args.out else Path("results") / (
         "expert" if spec.is_expert else Path(args.agent).resolve().parent.name
     )
-    summary = run_benchmark(
-        eps,
-        spec,
-        out,
-        workers=args.workers,
-        camera=args.camera,
-        record=args.record,
-        progress=not args.no_progress,
-        label=args.label,
-        world_factory=factory,
-    )
+    try:
+        summary = run_benchmark(
+            eps,
+            spec,
+            out,
+            workers=args.workers,
+            camera=args.camera,
+            record=args.record,
+            progress=not args.no_progress,
+            label=args.label,
+            world_factory=factory,
+        )
+    finally:
+        if world is not None:
+            world.close()  # the runner closes it too when it drove episodes; closing twice is harmless
     print(
         f"{summary.total} episodes: {summary.skipped} already done, {summary.ran} run now "
         f"({summary.successes} successful) in {summary.wall_s:.1f} s; results in {out}/episodes.jsonl"
     )
     return 0
+
+
+def _carla_episodes(args: argparse.Namespace) -> tuple[list[Any], Callable[[], Any], Any]:
+    """Connect once, find or make each town's route file and check it against the server's map, then the episodes.
+
+    Every town is checked before any episode runs, the first town driven last so that it stays loaded. The
+    world that made the checks drives the episodes; after a simulator error the runner gets a new connection.
+    """
+    from pathlib import Path
+
+    from yawil.bench.suites import SUITE_CONDITIONS, episodes, get_condition, get_suite
+    from yawil.sim import make_world
+    from yawil.sim.carla.errors import CarlaSetupError
+    from yawil.sim.carla.routes.connect import prepare_route_file
+    from yawil.sim.carla.world import carla_town
+
+    get_suite(args.suite)
+    conditions = _split(args.condition) or list(SUITE_CONDITIONS[args.suite])
+    towns: list[str] = []
+    for name in conditions:
+        town = get_condition(name).town
+        carla_town(town)  # 'square' is embedded-only: a clear error before connecting
+        if town not in towns:
+            towns.append(town)
+    routes_dir = Path(args.routes_dir) if args.routes_dir else None
+    try:
+        world = make_world("carla", host=args.host, port=args.port)
+    except CarlaSetupError as err:
+        raise ValueError(str(err)) from None
+    try:
+        folders = {town: prepare_route_file(world, town, routes_dir).parent for town in reversed(towns)}
+        eps: list[Any] = []
+        for name in conditions:  # episodes() takes one folder: one call per condition, in the same order
+            eps += episodes(
+                args.suite,
+                conditions=[name],
+                tasks=_split([args.tasks] if args.tasks else None),
+                routes=args.routes,
+                seeds=args.seeds,
+                routes_folder=folders[get_condition(name).town],
+            )
+    except CarlaSetupError as err:
+        world.close()
+        raise ValueError(str(err)) from None
+    except BaseException:
+        world.close()
+        raise
+    first = [world]
+
+    def factory() -> Any:
+        return first.pop() if first else make_world("carla", host=args.host, port=args.port)
+
+    return eps, factory, world

@@ -72,6 +72,7 @@ PRIVILEGED_RADIUS = 50.0
 EGO_BLUEPRINT = "vehicle.lincoln.mkz_2017"
 SPAWN_CLEARANCE = 15.0  # metres between the ego's start and any vehicle spawn point
 SENSOR_TIMEOUT = 10.0  # seconds to wait for the camera frame of a tick
+LOAD_TIMEOUT = 60.0  # seconds allowed for loading a map (slower than any other call)
 BOUNDS_MARGIN = 10.0
 TOWN_RE = re.compile(r"^town(\d{2}(?:_opt)?)$", re.IGNORECASE)
 
@@ -251,7 +252,12 @@ class CarlaWorld:
         available = [str(m).rsplit("/", 1)[-1] for m in self._client.get_available_maps()]
         if town not in available:
             raise CarlaSetupError(f"CARLA server at {self.address} has no map {town}; it has {', '.join(sorted(available))}")
-        self._world = self._client.load_world(town)
+        self._client.set_timeout(max(self.timeout, LOAD_TIMEOUT))
+        try:
+            self._world = self._client.load_world(town)
+        finally:
+            self._client.set_timeout(self.timeout)
+        self._topologies.clear()  # a loaded map has new traffic-light actors: the cached stop lines' ids are stale
 
     def topology_of(self, town: str) -> CarlaTopology:
         """The planner's topology of a CARLA map (Town01, ...), loading it on the server if needed."""

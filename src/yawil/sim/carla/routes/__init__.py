@@ -28,6 +28,7 @@ from yawil.sim.types import Pose, RoadOption, Route
 
 CARLA_ROUTES_DIR = Path(__file__).parent
 SNAP_TOLERANCE_M = 2.0
+MAX_ATTEMPTS = 20000  # candidates per task before generate_routes gives up
 TOWNS = ("town01", "town02")
 
 
@@ -57,26 +58,36 @@ def _walk(topo: CarlaTopology, rng: np.random.Generator, want: str) -> Route | N
     return topo.sample(seq, ss, sg).route
 
 
-def generate_routes(topo: CarlaTopology, town: str, seed: int = 0, per_task: int | None = None) -> dict[str, list[Any]]:
-    """Route lists straight, one_turn, navigation for a CARLA town, drawn on its topology from the seed."""
+def generate_routes(topo: CarlaTopology, town: str, seed: int = 0, per_task: int | None = None,
+                    max_attempts: int | None = None) -> dict[str, list[Any]]:
+    """Route lists straight, one_turn, navigation for a CARLA town, drawn on its topology from the seed.
+
+    Gives up after `max_attempts` candidates per task (default MAX_ATTEMPTS) with a ValueError saying how far
+    it got and the longest candidate seen: a map too small for the town's rules is the usual cause.
+    """
     from yawil.bench.routegen import accept_route
     from yawil.bench.suites import MIN_LENGTH, ROUTES_PER_TASK, RouteSpec
 
     if town not in TOWNS:
         raise ValueError(f"no route rules for CARLA town {town!r}; choose one of {', '.join(TOWNS)}")
     n = per_task or ROUTES_PER_TASK
+    attempts = MAX_ATTEMPTS if max_attempts is None else max_attempts
+    if isinstance(attempts, bool) or not isinstance(attempts, int) or attempts < 1:
+        raise ValueError(f"max_attempts must be a positive integer, got {attempts!r}")
     rng = np.random.default_rng(seed)
     out: dict[str, list[Any]] = {}
     for kind in ("straight", "one_turn", "navigation"):
         minimum = MIN_LENGTH[town][kind]
         specs: list[Any] = []
         seen: set[tuple[int, int, int, int]] = set()
-        for _ in range(20000):
+        longest = 0.0
+        for _ in range(attempts):
             cand = topo.random_route(rng, minimum).route if kind == "navigation" else _walk(topo, rng, kind)
             if cand is None:
                 continue
             start, goal = _endpoints(cand)
             route = topo.plan(start, goal).route  # what CarlaWorld will drive
+            longest = max(longest, route.length)
             names = accept_route(route, start, goal, kind, minimum, seen)
             if names is None:
                 continue
@@ -84,23 +95,35 @@ def generate_routes(topo: CarlaTopology, town: str, seed: int = 0, per_task: int
             if len(specs) == n:
                 break
         else:
-            raise ValueError(f"could not draw {n} {kind} routes of >= {minimum:.0f} m on CARLA {town}; got {len(specs)}")
+            raise ValueError(f"could not draw {n} {kind} routes of >= {minimum:.0f} m on CARLA {town} (map {topo.name!r}) "
+                             f"in {attempts} attempts: got {len(specs)}, the longest candidate as planned was "
+                             f"{longest:.0f} m (is this {town}'s map?)")
         out[kind] = specs
     return out
 
 
 def validate_routes(topo: CarlaTopology, lists: dict[str, list[Any]], where: str) -> None:
-    """Every start/goal snaps to a driving lane within 2 m and every goal is reachable: ValueError otherwise."""
+    """Every start/goal snaps to a driving lane within 2 m, every goal is reachable, every length matches within 1 %.
+
+    The first route that does not fit is a ValueError naming `where`, the route and the figure.
+    """
     for name, specs in lists.items():
         for spec in specs:
+            route = f"{where}: routes.{name}[{spec.id}]"
             for end, pose in (("start", spec.start), ("goal", spec.goal)):
-                d = topo.snap(pose)[2]
+                try:
+                    d = topo.snap(pose)[2]
+                except ValueError as err:
+                    raise ValueError(f"{route}.{end}: {err}") from None
                 if d > SNAP_TOLERANCE_M:
-                    raise ValueError(f"{where}: routes.{name}[{spec.id}].{end} {pose} is {d:.1f} m from the nearest driving "
+                    raise ValueError(f"{route}.{end} {pose} is {d:.1f} m from the nearest driving "
                                      f"lane of map {topo.name!r} (at most {SNAP_TOLERANCE_M} m allowed)")
-            length = topo.plan(spec.start, spec.goal).route.length
+            try:
+                length = topo.plan(spec.start, spec.goal).route.length
+            except ValueError as err:
+                raise ValueError(f"{route}: {err}") from None
             if not math.isclose(length, spec.length_m, rel_tol=0.01, abs_tol=1.0):
-                raise ValueError(f"{where}: routes.{name}[{spec.id}] is {length:.1f} m on this map, the file says "
+                raise ValueError(f"{route} is {length:.1f} m on this map, the file says "
                                  f"{spec.length_m:.1f} m (a different map version?)")
 
 
@@ -147,7 +170,8 @@ def topology_from_xodr(path: str | Path, town: str) -> tuple[CarlaTopology, dict
 
 
 def write_route_file(topo: CarlaTopology, town: str, seed: int = 0, folder: Path | None = None,
-                     per_task: int | None = None, source: dict[str, Any] | None = None) -> Path:
+                     per_task: int | None = None, source: dict[str, Any] | None = None,
+                     max_attempts: int | None = None) -> Path:
     """Generate, check and atomically write `<folder>/<town>.json` (default: this package's folder).
 
     `source` says which map made the file (`topology_from_xodr`'s record, or a server's); it is stored as is.
@@ -155,7 +179,7 @@ def write_route_file(topo: CarlaTopology, town: str, seed: int = 0, folder: Path
     from yawil.bench.records import write_json_atomic
     from yawil.bench.suites import ROUTE_FORMAT, check_task_routes
 
-    lists = generate_routes(topo, town, seed, per_task)
+    lists = generate_routes(topo, town, seed, per_task, max_attempts)
     if per_task is None:
         for name, specs in lists.items():
             check_task_routes(town, name, specs, f"generated CARLA {town}.{name}")

@@ -12,6 +12,7 @@ classified by `yawil.bench.routegen.classify`. A generated file is validated aga
 and goal snaps to a driving lane within 2 m, every goal is reachable, lengths match) and records its
 source (`source`: kind, map name, the xodr's sha256, the carla client version) so a later check can tell
 which map it was made from. (This tool imports yawil.bench lazily: it writes benchmark data.)
+`connect.py` finds, makes and checks a town's file when `yawil bench --backend carla` connects.
 """
 
 from __future__ import annotations

@@ -337,3 +337,32 @@ def test_lights_at_both_ends_of_a_short_block_turn_green_together() -> None:
     assert len(lights.links) == 1  # only the 20 m block between x = 90 and 110 m
     for town in ("town01", "square"):  # no short block: every junction keeps its own random offset
         assert TrafficLights(get_town(town).lanes).links == []
+
+
+def test_the_ego_waiting_for_exit_room_reserves_it_like_a_vehicle() -> None:
+    """Town02 seed 26: the ego waited at the north approach to turn onto the 20 m block, which the straight
+    traffic sharing the block's green refilled every cycle; vehicles reserved room, the ego could not."""
+    lanes = get_town("town02").lanes
+    exit_lane = 11
+    cb = [c for c in lanes.node_connectors[lanes.lanes[exit_lane].start_node] if lanes.lanes[c].exit == exit_lane][1]
+    eb = lanes.lanes[cb].entry
+    far, none, no_ped = (1e4, 1e4, 0.0, 0.0), np.zeros(0, dtype=np.int64), np.zeros((0, 2))
+    for ego_waited, other_enters in ((0.0, True), (11.0, False)):
+        veh = Vehicles(lanes)
+        veh._alloc(2)
+        veh.lane[:] = (exit_lane, eb)
+        veh.s[:] = (12.0, lanes.length[eb] - 15.0)
+        veh.v[:] = (0.0, 6.0)
+        veh.v0[:] = (0.01, 8.0)  # one car stands on the block: room for exactly one more
+        veh.nxt1[:] = (lanes.lanes[exit_lane].successors[0], cb)
+        veh.nxt2[:] = [lanes.lanes[int(n)].successors[0] for n in veh.nxt1]
+        veh.length[:], veh.width[:] = 4.5, 1.8
+        veh.ego_wait = ego_waited
+        veh._update_pose()
+        codes = np.zeros(len(lanes.approaches), dtype=np.int64)  # green for the other car
+        entered = False
+        for _ in range(100):
+            veh.step(0.1, np.random.default_rng(0), codes, far, (4.6, 1.9), none, no_ped, ego_gate=(exit_lane, True))
+            entered |= bool(veh.lane[1] == cb)
+        assert entered is other_enters
+        assert veh.ego_wait > ego_waited + 5.0  # counted while the room lacked

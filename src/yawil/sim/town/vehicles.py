@@ -67,6 +67,7 @@ class Vehicles:
         self.yaw = np.zeros(n)
         self.ids = np.arange(1, n + 1)
         self.wait = np.zeros(n)  # seconds a queue head has waited at its stop line for room after the junction
+        self.ego_wait = 0.0  # the same for the ego
 
     def _pick(self, lane: int, rng: np.random.Generator) -> int:
         succ = self.successors[lane]
@@ -214,8 +215,10 @@ class Vehicles:
 
     def step(self, dt: float, rng: np.random.Generator, light_codes: np.ndarray, ego: tuple[float, float, float, float],
              ego_size: tuple[float, float], ego_lanes: np.ndarray, ped_xy: np.ndarray,
-             ego_on_lane: tuple[int, float] = (-1, 0.0)) -> None:
-        """Advance dt. `ego_lanes`: junction connectors the ego occupies; `ego_on_lane`: its (road lane, s)."""
+             ego_on_lane: tuple[int, float] = (-1, 0.0), ego_gate: tuple[int, bool] = (-1, False)) -> None:
+        """Advance dt. `ego_lanes`: junction connectors the ego occupies; `ego_on_lane`: its (road lane, s);
+        `ego_gate`: (the lane it will exit the junction ahead onto, whether it stands at that junction's stop
+        line as the head of its queue), so that it takes part in the exit-room reservation like a vehicle."""
         if not self.n:
             return
         lanes = self.lanes
@@ -266,11 +269,20 @@ class Vehicles:
         # the next room there, else another approach (green while it is red) can refill that lane every cycle
         at_line = gate & (g_stop < 4.0)
         self.wait = np.where(at_line & ((self.wait > 0.0) | (room[exit_lane] < need)), self.wait + dt, 0.0)
-        holder = np.full(len(L), -1, dtype=np.int64)
+        # the ego too: else the traffic that shares its green refills the lane it waits for, for ever (town02
+        # seed 26: turning right from the north onto the 20 m block, which the straight traffic keeps full)
+        ego_exit, ego_at_line = ego_gate
+        ego_need = ego_size[0] + self.S0 + 1.0
+        waited = ego_exit >= 0 and ego_at_line and (self.ego_wait > 0.0 or room[ego_exit] < ego_need)
+        self.ego_wait = self.ego_wait + dt if waited else 0.0
+        holder = np.full(len(L), -1, dtype=np.int64)  # -2: the ego
         waiting = np.flatnonzero(self.wait > self.RESERVE_S)
-        for i in waiting[np.argsort(self.wait[waiting], kind="stable")].tolist():
-            holder[exit_lane[i]] = i  # the longest wait wins
-        reserved = np.where(holder >= 0, need[np.maximum(holder, 0)], 0.0)
+        claims = [(float(self.wait[i]), i, int(exit_lane[i])) for i in waiting.tolist()]
+        if self.ego_wait > self.RESERVE_S:
+            claims.append((self.ego_wait, -2, ego_exit))
+        for _, i, e in sorted(claims, key=lambda c: c[0]):
+            holder[e] = i  # the longest wait wins
+        reserved = np.where(holder >= 0, need[np.maximum(holder, 0)], np.where(holder == -2, ego_need, 0.0))
         room_for = room[exit_lane] - np.where(holder[exit_lane] == np.arange(self.n), 0.0, reserved[exit_lane])
         blocked = gate & (room_for < need)
         at_gate = np.flatnonzero(gate & ~blocked)

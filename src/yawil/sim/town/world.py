@@ -148,7 +148,7 @@ class EmbeddedWorld:
         ped_road = self.pedestrians.xy[self.pedestrians.on_road] if self.pedestrians.n else np.zeros((0, 2))
         self.vehicles.step(DT, self._rng, codes, (self.ego.x, self.ego.y, self.ego.yaw, self.ego.speed),
                            (self.params.length, self.params.width), self._ego_connectors(), ped_road,
-                           self._ego_road_lane())
+                           self._ego_road_lane(), self._ego_gate())
         veh = self.vehicles
         actors = np.empty((veh.n + 1, 6))
         actors[:-1] = np.stack([veh.x, veh.y, veh.yaw, veh.length, veh.width, veh.v], 1) if veh.n else actors[:0]
@@ -203,6 +203,27 @@ class EmbeddedWorld:
         m = np.isin(lanes.sample_lane, conns)
         d = np.hypot(lanes.sample_xy[m, 0] - self.ego.x, lanes.sample_xy[m, 1] - self.ego.y)
         return np.unique(lanes.sample_lane[m][d < 2.5])
+
+    def _ego_gate(self) -> tuple[int, bool]:
+        """(the road lane its route leaves the junction ahead by, whether it stands at that junction's stop line).
+
+        Standing: slower than 0.5 m/s with its front bumper within 4 m of the stop line (the vehicles' own
+        rule). (-1, False) off its route's lanes or with no junction ahead on the lane.
+        """
+        lane, s = self._ego_road_lane()
+        lanes = self.planned.lanes
+        i = self.c_progress.index
+        if lane < 0 or int(lanes[i]) != lane or self.town is None:
+            return (-1, False)
+        later = np.flatnonzero(lanes[i:] != lane)
+        if not len(later):
+            return (-1, False)
+        graph = self.town.lanes
+        conn = graph.lanes[int(lanes[i + int(later[0])])]
+        if conn.kind != "connector" or not graph.is_junction(conn.node):
+            return (-1, False)
+        to_line = graph.length[lane] - graph.STOP_BACK - s - self.params.length / 2
+        return (conn.exit, bool(self.ego.speed < 0.5 and to_line < 4.0))
 
     def _ego_road_lane(self) -> tuple[int, float]:
         """(road lane, arc length) under the ego's centre, or (-1, 0) off the road lanes."""

@@ -50,6 +50,7 @@ COMMAND_LOOKAHEAD = 3  # waypoints ahead of the ego's projection whose option is
 PRIVILEGED_RADIUS = 50.0
 EGO_ID = 0
 EGO_COLOR = (0.15, 0.35, 0.75)
+EGO_COMMIT_S = 2.0  # s: traffic treats the ego as in the junction it will reach within this time
 GOAL_WINDOW = 10  # waypoints (metres): the goal counts once the ego's route progress is this close to the end
 
 
@@ -181,10 +182,11 @@ class EmbeddedWorld:
         """Junction connectors the ego occupies or is committed to, so traffic yields to it.
 
         In a junction: the connectors within 2.5 m of its centre. Before one: every connector leaving its lane
-        once its front bumper could no longer stop short of the junction at traffic's own comfortable
-        deceleration (or is already in it), since nobody can tell which way it will turn. Without that, a
-        vehicle waiting at its junction entry pulled out across the ego whose nose was already in the box,
-        and each then stood in the other's path for ever (town02, regular route 8 seed 1).
+        once its front bumper will be in the junction within EGO_COMMIT_S at its speed, or could no longer
+        stop short of it at traffic's own comfortable deceleration (or is already in it), since nobody can
+        tell which way it will turn. Without that, a vehicle waiting at its junction entry pulled out across
+        the ego arriving at 3-5 m/s, and each then stood in the other's path for ever (town02 regular routes
+        8 and 10: at 3.3 m/s 2 m before the box, stopping distance alone was not enough warning).
         """
         assert self.town is not None
         code = self.town.regions.query_point(self.ego.x, self.ego.y)
@@ -196,7 +198,7 @@ class EmbeddedWorld:
             along = math.cos(self.ego.yaw - self._road_yaw[lane]) > 0.5  # driving along it, not across
             to_box = lanes.length[lane] - s - self.params.length / 2
             v = max(self.ego.speed, 0.0)
-            if along and to_box < v * v / (2 * Vehicles.B_COMF):
+            if along and to_box < max(v * v / (2 * Vehicles.B_COMF), v * EGO_COMMIT_S):
                 return np.array(lanes.lanes[lane].successors, dtype=np.int64)
             return np.zeros(0, dtype=np.int64)
         conns = np.array(lanes.node_connectors[JUNCTION_BASE - code], dtype=np.int64)

@@ -368,30 +368,3 @@ def test_the_ego_waiting_for_exit_room_reserves_it_like_a_vehicle() -> None:
             entered |= bool(veh.lane[1] == cb)
         assert entered is other_enters
         assert veh.ego_wait > ego_waited + 5.0  # counted while the room lacked
-
-
-def test_a_queue_head_at_a_red_light_is_not_starving() -> None:
-    """Town02 dense route 9 seed 2: heads counted their red as waiting for room, reserved the 20 m block through
-    the other approach's whole green, and the straight traffic's queue crawled. Only a green counts."""
-    lanes = get_town("town02").lanes
-    exit_lane = 11
-    ca = [c for c in lanes.node_connectors[lanes.lanes[exit_lane].start_node] if lanes.lanes[c].exit == exit_lane][0]
-    ea = lanes.lanes[ca].entry
-    veh = Vehicles(lanes)
-    veh._alloc(3)
-    veh.lane[:] = (exit_lane, exit_lane, ea)
-    veh.s[:] = (16.0, 8.0, veh.stop_s[ea] - 2.25 - 1.0)
-    veh.v0[:] = (0.01, 0.01, 8.0)  # the block is full and stays so
-    veh.nxt1[:] = (lanes.lanes[exit_lane].successors[0], lanes.lanes[exit_lane].successors[0], ca)
-    veh.nxt2[:] = [lanes.lanes[int(n)].successors[0] for n in veh.nxt1]
-    veh.length[:], veh.width[:] = 4.5, 1.8
-    veh._update_pose()
-    codes = np.full(len(lanes.approaches), RED, dtype=np.int64)
-    far, none, no_ped = (1e4, 1e4, 0.0, 0.0), np.zeros(0, dtype=np.int64), np.zeros((0, 2))
-    for _ in range(150):
-        veh.step(0.1, np.random.default_rng(0), codes, far, (4.6, 1.9), none, no_ped)
-    assert veh.wait[2] == 0.0 and veh.lane[2] == ea  # 15 s at its red: not starving
-    codes[lanes.light_of_lane[ea]] = 0
-    for _ in range(110):
-        veh.step(0.1, np.random.default_rng(0), codes, far, (4.6, 1.9), none, no_ped)
-    assert veh.wait[2] > veh.RESERVE_S and veh.lane[2] == ea  # 11 s of green without room: it reserves

@@ -16,7 +16,7 @@ import numpy as np
 
 from yawil.sim.criteria import boxes_overlap
 from yawil.sim.town.lanes import LaneGraph
-from yawil.sim.town.lights import GREEN, RED, YELLOW
+from yawil.sim.town.lights import GREEN, YELLOW
 from yawil.sim.types import RoadOption
 
 VEHICLE_COLORS = ((0.75, 0.1, 0.1), (0.1, 0.2, 0.6), (0.85, 0.85, 0.85), (0.1, 0.1, 0.1), (0.5, 0.5, 0.55),
@@ -267,21 +267,14 @@ class Vehicles:
         exit_lane = self.exit_of[self.nxt1]
         # fairness: a queue head that has waited RESERVE_S at its stop line for room on its exit lane reserves
         # the next room there, else another approach (green while it is red) can refill that lane every cycle
-        # Only time with a light that lets it go counts (paused on red): a head waiting at its red is waiting
-        # for the light, and counting that let the approach with the shorter share of the cycle hold the room
-        # through the other's whole green (town02 dense route 9 seed 2: the north approach's right-turners kept
-        # the 20 m block from the straight traffic, whose queue then took minutes to pass)
         at_line = gate & (g_stop < 4.0)
-        self.wait = np.where(at_line & ((self.wait > 0.0) | (room[exit_lane] < need)),
-                             self.wait + np.where(code == RED, 0.0, dt), 0.0)
+        self.wait = np.where(at_line & ((self.wait > 0.0) | (room[exit_lane] < need)), self.wait + dt, 0.0)
         # the ego too: else the traffic that shares its green refills the lane it waits for, for ever (town02
         # seed 26: turning right from the north onto the 20 m block, which the straight traffic keeps full)
         ego_exit, ego_at_line = ego_gate
         ego_need = ego_size[0] + self.S0 + 1.0
         waited = ego_exit >= 0 and ego_at_line and (self.ego_wait > 0.0 or room[ego_exit] < ego_need)
-        ego_light = int(lanes.light_of_lane[ego_on_lane[0]]) if ego_on_lane[0] >= 0 else -1
-        ego_red = ego_light >= 0 and int(light_codes[ego_light]) == RED
-        self.ego_wait = (self.ego_wait + (0.0 if ego_red else dt)) if waited else 0.0
+        self.ego_wait = self.ego_wait + dt if waited else 0.0
         holder = np.full(len(L), -1, dtype=np.int64)  # -2: the ego
         waiting = np.flatnonzero(self.wait > self.RESERVE_S)
         claims = [(float(self.wait[i]), i, int(exit_lane[i])) for i in waiting.tolist()]

@@ -26,7 +26,8 @@ def _obs(x: float, y: float = 0.0, events: tuple[Event, ...] = (), done: bool = 
     xy = np.stack([np.arange(0, 101, 1.0), np.zeros(101)], axis=1)
     route = Route(xy=xy, options=np.full(101, 4, np.int8), lane_yaw=np.zeros(101))
     return Observation(
-        image=None, speed=5.0, pose=Pose(x, y, 0.0), route=route, route_index=0, command=RoadOption.LANEFOLLOW,
+        image=None, speed=5.0, pose=Pose(x, y, 0.0), route=route, route_index=int(np.clip(round(x), 0, 100)),
+        command=RoadOption.LANEFOLLOW,
         events=events, time=0.0, frame=0, done=done, distance_driven=dist, town="t", bounds=(0, 0, 100, 10),
         weather="ClearNoon",
     )
@@ -56,6 +57,26 @@ def test_success_within_two_metres() -> None:
     assert res["success"] and res["reason"] is None and res["steps"] == 3
     assert res["km_driven"] == pytest.approx(0.0981)
     assert res["trajectory"][0] == [0.0, 0.0] and res["trajectory"][-1] == [98.1, 0.0]
+
+
+def test_goal_of_a_looping_route_counts_only_at_its_end() -> None:
+    """A route that ends where it starts (town02 navigation 13) is not reached on the first step."""
+    t = np.linspace(0.0, 2 * np.pi, 400)
+    xy = np.stack([30.0 * np.sin(t), 30.0 * (1.0 - np.cos(t))], axis=1)  # a 188 m loop, end == start
+    route = Route(xy=xy, options=np.full(len(xy), 4, np.int8), lane_yaw=np.zeros(len(xy)))
+
+    def at(i: int) -> Observation:
+        return Observation(
+            image=None, speed=5.0, pose=Pose(float(xy[i, 0]), float(xy[i, 1]), 0.0), route=route, route_index=i,
+            command=RoadOption.LANEFOLLOW, events=(), time=0.0, frame=0, done=False, distance_driven=0.0,
+            town="t", bounds=(-40, -10, 40, 70), weather="ClearNoon",
+        )  # fmt: skip
+
+    tr = EpisodeTracker(goal_xy=(float(xy[-1, 0]), float(xy[-1, 1])), timeout_s=600.0)
+    tr.start(at(0))
+    assert not tr.update(at(1))  # 0.5 m from the goal, but the whole loop is still ahead
+    assert not tr.update(at(200))
+    assert tr.update(at(398)) and tr.result()["success"]
 
 
 def test_first_collision_ends_with_its_kind_even_at_goal() -> None:

@@ -22,6 +22,7 @@ import numpy as np
 from yawil.sim.types import DT, EventKind, Observation
 
 SUCCESS_RADIUS = 2.0  # metres from the route's last waypoint
+GOAL_ROUTE_LEFT = 10.0  # metres of route still ahead of the ego at most, for the goal to count
 FAILURE_REASONS: tuple[str, ...] = (
     "collision_vehicle",
     "collision_pedestrian",
@@ -46,6 +47,17 @@ def collision_reason(other_type: str | None) -> str:
     if other_type == "pedestrian":
         return "collision_pedestrian"
     return "collision_static"
+
+
+def route_left(obs: Observation) -> float:
+    """Length of route still ahead of the ego's projection.
+
+    Being near the goal is not enough: a route that loops back past its own start (town02 navigation 13
+    ends 0.4 m from where it begins) would otherwise be "reached" on the first step.
+    """
+    xy = np.asarray(obs.route.xy, dtype=np.float64)
+    i = min(max(int(obs.route_index), 0), len(xy) - 1)
+    return float(np.hypot(*np.diff(xy[i:], axis=0).T).sum())
 
 
 @dataclass
@@ -117,7 +129,7 @@ class EpisodeTracker:
         self.final_distance_m = self._goal_distance(obs)
         if self.collisions:
             self.reason = collision_reason(self.collisions[0]["type"])
-        elif self.final_distance_m <= SUCCESS_RADIUS:
+        elif self.final_distance_m <= SUCCESS_RADIUS and route_left(obs) <= GOAL_ROUTE_LEFT:
             self.success = True
         elif self.time_s >= self.timeout_s - 1e-9:
             self.reason = "timeout"

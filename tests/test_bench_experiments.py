@@ -8,7 +8,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from yawil.bench.experiments import get_profile, noise_candidates, table1_markdown
+from yawil.bench.experiments import get_profile, noise_candidates, noise_experiment, table1_markdown
 from yawil.bench.runner import AgentSpec, run_benchmark
 from yawil.bench.suites import episodes
 
@@ -36,6 +36,8 @@ def test_noise_candidates(tmp_path: Path) -> None:
     assert "no model passed" in note
     with pytest.raises(ValueError, match="unknown profile"):
         get_profile("huge")
+    with pytest.raises(ValueError, match="noise seeds must be >= 1, got 0"):
+        noise_experiment(tmp_path, "standard", seeds=0)
 
 
 def _checkpoint(tmp_path: Path, name: str) -> Path:

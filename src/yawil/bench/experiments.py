@@ -17,7 +17,7 @@ from __future__ import annotations
 
 import json
 from collections.abc import Callable, Sequence
-from dataclasses import asdict, dataclass
+from dataclasses import asdict, dataclass, replace
 from pathlib import Path
 from typing import Any
 
@@ -254,9 +254,13 @@ def noise_candidates(root: Path, models: Sequence[str] | None = None) -> tuple[l
 
 
 def noise_experiment(out: str | Path, profile: str = "quick", models: Sequence[str] | None = None,
-                     log: Log = print) -> Path:
-    """Table II from the Table I models; returns the path of table2.md."""
+                     log: Log = print, seeds: int | None = None) -> Path:
+    """Table II from the Table I models; returns the path of table2.md. `seeds` overrides the profile's."""
     p = get_profile(profile)
+    if seeds is not None:
+        if seeds < 1:
+            raise ValueError(f"noise seeds must be >= 1, got {seeds}")
+        p = replace(p, noise_seeds=seeds)
     root = Path(out)
     chosen, note = noise_candidates(root, models)
     n = _n_tasks(p)

@@ -19,6 +19,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                    "docs/benchmark.md; paper: the paper's budgets (default quick)")
     p.add_argument("--out", default="results/square", help="experiment folder (default results/square)")
     p.add_argument("--seed", type=int, default=0, help="seed of collection and training (default 0)")
+    p.add_argument("--noise-seeds", type=int, default=None,
+                   help="noise: seeds per noise level instead of the profile's (the paper's 5)")
     p.add_argument("--models", default=None, help="noise: comma-separated methods to test instead of the passing ones")
     return p
 
@@ -31,7 +33,7 @@ def run(args: argparse.Namespace) -> int:
             square_experiment(args.out, args.profile, seed=args.seed)
         else:
             models = [m.strip() for m in args.models.split(",")] if args.models else None
-            noise_experiment(args.out, args.profile, models=models)
+            noise_experiment(args.out, args.profile, models=models, seeds=args.noise_seeds)
     except ValueError as err:
         raise SystemExit(f"yawil experiment: {err}") from None
     return 0

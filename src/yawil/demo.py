@@ -99,6 +99,28 @@ def _mark(out: Path, name: str, info: dict[str, Any]) -> None:
     write_marker(_stage(out, name), info)
 
 
+def _train(out: Path, stage: str, what: str, model: str, data: Path, run_dir: Path, max_steps: int,
+           max_minutes: float, budget: DemoBudget, seed: int) -> dict[str, Any]:
+    """One resumable training stage of the demo; returns its marker (steps, epochs, best_val, seconds)."""
+    info = _done(out, stage)
+    if info is not None:
+        return info
+    from yawil.train import TrainConfig, train
+
+    _say(f"{what} for at most {max_steps} steps / {max_minutes} min -> {run_dir}")
+    t = time.perf_counter()
+    cfg = TrainConfig(
+        model=model, data=[str(data)], out=str(run_dir), epochs=budget.epochs, batch_size=budget.batch_size,
+        lr=budget.lr, lr_step_epochs=budget.lr_step_epochs, max_steps=max_steps, max_minutes=max_minutes,
+        seed=seed, workers=1,
+    )  # fmt: skip
+    result = train(cfg, resume=(run_dir / "last.pt").is_file())
+    info = {"seconds": time.perf_counter() - t, "steps": result.steps, "epochs": result.epochs_done,
+            "best_val": result.best_val, "stopped_by": result.stopped_by}  # fmt: skip
+    _mark(out, stage, info)
+    return info
+
+
 def run_demo(out: Path, budget: DemoBudget, seed: int = 0) -> Path:
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
@@ -121,43 +143,12 @@ def run_demo(out: Path, budget: DemoBudget, seed: int = 0) -> Path:
         _mark(out, "collect", info)
     timings["collect"] = info["seconds"]
 
-    # 2. train
-    info = _done(out, "train")
-    if info is None:
-        from yawil.train import TrainConfig, train
-
-        _say(f"2/6 training {budget.model} for at most {budget.max_steps} steps / {budget.max_minutes} min -> {run_dir}")
-        t = time.perf_counter()
-        cfg = TrainConfig(
-            model=budget.model, data=[str(data)], out=str(run_dir), epochs=budget.epochs,
-            batch_size=budget.batch_size, lr=budget.lr, lr_step_epochs=budget.lr_step_epochs,
-            max_steps=budget.max_steps, max_minutes=budget.max_minutes, seed=seed, workers=1,
-        )  # fmt: skip
-        result = train(cfg, resume=(run_dir / "last.pt").is_file())
-        info = {"seconds": time.perf_counter() - t, "steps": result.steps, "epochs": result.epochs_done,
-                "best_val": result.best_val, "stopped_by": result.stopped_by}  # fmt: skip
-        _mark(out, "train", info)
-    timings["train"] = info["seconds"]
-    train_info = info
-
-    # 3. train the small baseline on the same data
-    info = _done(out, "train_baseline")
-    if info is None:
-        from yawil.train import TrainConfig, train
-
-        _say(f"3/6 training {budget.baseline} for at most {budget.baseline_steps} steps -> {base_dir}")
-        t = time.perf_counter()
-        cfg = TrainConfig(
-            model=budget.baseline, data=[str(data)], out=str(base_dir), epochs=budget.epochs,
-            batch_size=budget.batch_size, lr=budget.lr, lr_step_epochs=budget.lr_step_epochs,
-            max_steps=budget.baseline_steps, max_minutes=budget.baseline_minutes, seed=seed, workers=1,
-        )  # fmt: skip
-        result = train(cfg, resume=(base_dir / "last.pt").is_file())
-        info = {"seconds": time.perf_counter() - t, "steps": result.steps, "epochs": result.epochs_done,
-                "best_val": result.best_val, "stopped_by": result.stopped_by}  # fmt: skip
-        _mark(out, "train_baseline", info)
-    timings["train_baseline"] = info["seconds"]
-    base_info = info
+    # 2. train YILRatt, 3. train the small baseline on the same data
+    train_info = _train(out, "train", f"2/6 training {budget.model}", budget.model, data, run_dir,
+                        budget.max_steps, budget.max_minutes, budget, seed)
+    base_info = _train(out, "train_baseline", f"3/6 training {budget.baseline}", budget.baseline, data, base_dir,
+                       budget.baseline_steps, budget.baseline_minutes, budget, seed)
+    timings["train"], timings["train_baseline"] = train_info["seconds"], base_info["seconds"]
 
     # 4. benchmark the expert and the trained agents on a subset of routes, both conditions
     info = _done(out, "bench")

@@ -72,6 +72,9 @@ def test_progress_distance_goal_timeout() -> None:
     assert d.update((3, 4), (3, 5)) == pytest.approx(6.0)
     g = GoalCriterion(route[-1])
     assert g.update(1.0, 45.0, 0.0) == [] and len(g.update(1.1, 47.5, 0.5)) == 1 and g.update(1.2, 49, 0) == []
+    loop = GoalCriterion((0.0, 0.5), last_index=400)  # a loop whose goal lies next to its start
+    assert loop.update(0.1, 0.0, 0.0, progress_index=1) == [] and loop.update(0.2, 0.0, 0.0) == []
+    assert len(loop.update(9.0, 0.0, 0.0, progress_index=395)) == 1
     t = TimeoutCriterion(2.0)
     assert t.update(1.9, 0, 0) == [] and t.update(2.0, 0, 0)[0].kind is EventKind.TIMEOUT
     with pytest.raises(ValueError, match="timeout_s"):

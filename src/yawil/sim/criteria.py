@@ -175,18 +175,30 @@ class DistanceDrivenCriterion:
         return self.total
 
 
-class GoalCriterion:
-    """Goal reached: within `radius` metres of the route's last waypoint."""
+GOAL_WINDOW = 10  # waypoints (about metres): the goal counts once route progress is this close to the end
 
-    def __init__(self, goal_xy: Sequence[float], radius: float = 2.0) -> None:
+
+class GoalCriterion:
+    """Goal reached: within `radius` metres of the route's last waypoint, near the end of the route.
+
+    With `last_index` (the route's last waypoint index) the ego's route progress must also be within
+    `window` waypoints of it: a route that loops back past its own start (town02 navigation 13 ends 0.4 m
+    from where it begins) is otherwise "reached" on its first step.
+    """
+
+    def __init__(self, goal_xy: Sequence[float], radius: float = 2.0, last_index: int | None = None,
+                 window: int = GOAL_WINDOW) -> None:
         self.goal = (float(goal_xy[0]), float(goal_xy[1]))
         self.radius = radius
+        self.first_index = None if last_index is None else max(last_index - window, 0)
         self.reached = False
 
     def reset(self) -> None:
         self.reached = False
 
-    def update(self, time: float, x: float, y: float) -> list[Event]:
+    def update(self, time: float, x: float, y: float, progress_index: int | None = None) -> list[Event]:
+        if self.first_index is not None and (progress_index is None or progress_index < self.first_index):
+            return []
         if not self.reached and math.hypot(x - self.goal[0], y - self.goal[1]) <= self.radius:
             self.reached = True
             return [Event(EventKind.GOAL_REACHED, time, x, y)]

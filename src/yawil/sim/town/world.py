@@ -51,7 +51,6 @@ PRIVILEGED_RADIUS = 50.0
 EGO_ID = 0
 EGO_COLOR = (0.15, 0.35, 0.75)
 EGO_COMMIT_S = 2.0  # s: traffic treats the ego as in the junction it will reach within this time
-GOAL_WINDOW = 10  # waypoints (metres): the goal counts once the ego's route progress is this close to the end
 
 
 def _check_scenario(sc: Scenario) -> None:
@@ -117,7 +116,7 @@ class EmbeddedWorld:
                                          np.array([a.yaw for a in aps]))
         self.c_progress = RouteProgressCriterion(route.xy)
         self.c_distance = DistanceDrivenCriterion()
-        self.c_goal = GoalCriterion(route.xy[-1])
+        self.c_goal = GoalCriterion(route.xy[-1], last_index=len(route.xy) - 1)
         self.timeout_s = float(scenario.timeout_s) if scenario.timeout_s is not None else nocrash_timeout(route.length)
         self.c_timeout = TimeoutCriterion(self.timeout_s)
         self._light_objs = [[LightState(a.light, name, a.stop_xy[0], a.stop_xy[1], a.yaw) for name in STATE_NAMES]
@@ -311,8 +310,7 @@ class EmbeddedWorld:
         events += self.c_light.update(t, prev, (ex, ey), self.ego.yaw, self._names)
         self.c_progress.update(ex, ey)
         self.c_distance.update(prev, (ex, ey))
-        if self.c_progress.max_index >= len(self.route.xy) - 1 - GOAL_WINDOW:
-            events += self.c_goal.update(t, ex, ey)  # a loop route's goal may lie next to its start
+        events += self.c_goal.update(t, ex, ey, self.c_progress.max_index)
         events += self.c_timeout.update(t, ex, ey)
         if any(e.kind in (EventKind.GOAL_REACHED, EventKind.TIMEOUT) for e in events):
             self.done = True

@@ -127,12 +127,18 @@ def subset_stage(out: Path, full: Path, log: Log) -> dict[str, Path]:
     return paths
 
 
+def _trained(out: Path, dataset: str, model: str) -> Path | None:
+    """The best.pt of a finished training stage, or None."""
+    run = out / "models" / dataset / model
+    return run / "best.pt" if _done(run) and (run / "best.pt").exists() else None
+
+
 def train_stage(out: Path, data: Path, dataset: str, model: str, p: Profile, seed: int, log: Log) -> Path:
     from yawil.train import TrainConfig, train
 
     run = out / "models" / dataset / model
     best = run / "best.pt"
-    if _done(run) and best.exists():
+    if _trained(out, dataset, model):
         log(f"train: {run} done, skipped")
         return best
     cfg = TrainConfig(model=model, data=[str(data)], out=str(run), epochs=p.epochs, batch_size=p.batch_size,
@@ -162,8 +168,7 @@ def train_all(root: Path, data: dict[str, Path], jobs: Sequence[tuple[str, str]]
     out: dict[tuple[str, str], Path] = {}
     todo = []
     for d, m in jobs:
-        run = root / "models" / d / m
-        if _done(run) and (run / "best.pt").exists():
+        if _trained(root, d, m):
             out[(d, m)] = train_stage(root, data[d], d, m, p, seed, log)  # logs the skip
         else:
             todo.append((d, m))

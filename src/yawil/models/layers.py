@@ -45,11 +45,14 @@ class LinearAttention(nn.Module):
         self.project = nn.Conv2d(local_channels, global_dim, kernel_size=1, bias=False)
         self.score = nn.Conv2d(global_dim, 1, kernel_size=1, bias=False)  # the vector u
 
-    def forward(self, local: Tensor, g: Tensor) -> tuple[Tensor, Tensor]:
-        """Return the attended vector [B, D] and the attention map [B, h, w] (sums to 1)."""
+    def forward(self, local: Tensor, g: Tensor | None) -> tuple[Tensor, Tensor]:
+        """Return the attended vector [B, D] and the attention map [B, h, w] (sums to 1).
+
+        `g` None leaves out <u, g>, which is the same at every position and cancels in the softmax.
+        """
         proj = self.project(local)
         batch, _, h, w = proj.shape
-        scores = self.score(proj + g[:, :, None, None]).flatten(1)
+        scores = self.score(proj if g is None else proj + g[:, :, None, None]).flatten(1)
         att = torch.softmax(scores.float(), dim=1)
         attended = (proj.flatten(2).float() * att[:, None, :]).sum(dim=2)
         return attended.to(proj.dtype), att.view(batch, h, w)

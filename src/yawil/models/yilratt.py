@@ -41,12 +41,12 @@ class YILRatt(DrivingModel):
 
     def perceive(self, image: Tensor) -> tuple[Tensor, list[Tensor]]:
         """Concatenated attended vectors P(o) [B, 1536] and the three attention maps."""
+        g: Tensor | None = None
         if self.compute_global:
             l1, l2, l3, l4 = resnet_stages(self.backbone, self.normalise(image))
             g = l4.mean(dim=(2, 3))
         else:
             l1, l2, l3 = resnet_stages(self.backbone, self.normalise(image), stages=3)
-            g = l3.new_zeros(l3.shape[0], STAGE_CHANNELS[-1])
         vectors, maps = [], []
         for block, local in zip(self.attention, (l1, l2, l3), strict=True):
             v, a = block(local, g)

@@ -16,7 +16,7 @@ import carla
 import pytest
 
 import yawil.sim.carla.routes as carla_routes
-from test_carla_world import VERSION, FakeCarlaServer
+from carla_fakes import VERSION, FakeCarlaServer
 from yawil.bench.suites import load_routes
 from yawil.cli import main
 from yawil.sim.carla.routes import CARLA_ROUTES_DIR, generate_routes

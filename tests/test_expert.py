@@ -382,3 +382,16 @@ def test_a_vehicle_its_red_light_stops_is_not_crossing_traffic() -> None:
     assert reason("red") == "cruise"  # it stops at its line, 10 m before the ego's path
     assert reason("yellow") == "cruise"  # 11.75 m to its line: 3 m/s^2 suffice, it stops
     assert reason("yellow", -14.0) in ("junction", "vehicle")  # 1.75 m to its line at 6 m/s: it runs the yellow
+
+
+def test_a_vehicle_standing_just_past_the_goal_is_not_run_into() -> None:
+    """Town02 dense 4/2 and 24/2: the corridors ended at the goal, so the tail of a queue standing just past
+    it was invisible, and the ego, planning to stop with its front 3 m past the goal, ran into it."""
+    route = make_route(straight(0.0, 50.0))
+    queue_tail = vehicle(50.0 + 0.5 * 4.5 + 1.0, 0.0, 0.0, 0.0)  # its rear 1 m past the goal
+    car = Bicycle(20.0, 0.0, 0.0, speed=5.0)
+    e = Expert()
+    for i in range(200):
+        car.step(e.act(observe(route, car.x, car.y, car.yaw, car.speed, agents=(queue_tail,), frame=i)))
+        assert car.x + 0.5 * ExpertConfig().length < 51.0  # never touches its rear
+    assert car.speed < 0.05 and car.x > 44.0  # stopped behind it, near the goal

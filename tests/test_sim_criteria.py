@@ -123,7 +123,7 @@ def test_world_reports_lane_invasion_collision_and_red_light() -> None:
                      camera=False), seed=0)
     light = w.route.lights[0][1]
     w.lights.offset[:] = 0.0
-    w.lights.group[:] = 1  # every approach waits for the second slot: red at t < slot
+    w.lights.start[:] = 60.0  # every approach's slot starts late in its cycle: red until then
     w.ego.speed = 8.0
     ev = _drive(w, Control(throttle=0.5), 40)
     kinds = [(e.kind, e.other_id) for e in ev]

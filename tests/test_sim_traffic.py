@@ -5,11 +5,12 @@ from __future__ import annotations
 import math
 
 import numpy as np
+import pytest
 
 from yawil.sim import Control, EventKind, Pose, RoadOption, Scenario
 from yawil.sim.criteria import boxes_overlap
 from yawil.sim.town.lanes import LaneGraph
-from yawil.sim.town.lights import RED, TrafficLights
+from yawil.sim.town.lights import GREEN, LINKED_GREEN, RED, TrafficLights
 from yawil.sim.town.pedestrians import SIZE, Pedestrians
 from yawil.sim.town.regions import GROUND
 from yawil.sim.town.town import get_town
@@ -309,7 +310,7 @@ def test_no_vehicle_pulls_out_across_an_ego_committed_to_a_junction() -> None:
     w.vehicles = veh
     group = lights.group[lanes.light_of_lane[east]]
     assert lights.group[lanes.light_of_lane[west]] == group  # opposite approaches: both green
-    lights.offset[lights.node == node] = group * lights.slot + 1.0
+    lights.offset[lights.node == node] = lights.start[lanes.light_of_lane[east]] + 1.0
     box = float(lanes.lanes[west].ctrl[3, 0])  # x where the ego's lane meets the junction
     # (front bumper to the box, speed): in it within 2 s or unable to stop comfortably short of it
     for gap, speed, committed in ((2.1, 3.3, True), (8.0, 3.3, False), (1.0, 0.0, False), (1.0, 5.0, True)):
@@ -337,6 +338,13 @@ def test_lights_at_both_ends_of_a_short_block_turn_green_together() -> None:
             codes = lights.update(float(t))
             assert codes[into_n4] == codes[block_e] == codes[into_n5] == codes[block_w]
     assert len(lights.links) == 1  # only the 20 m block between x = 90 and 110 m
+    # the phase along the block gets the longer green; the stems keep the usual one
+    stem = next(i for i in range(len(lights.node)) if lights.node[i] == lights.node[into_n4]
+                and lights.group[i] != lights.group[into_n4])
+    times = np.arange(0.0, lights.cycle[into_n4], 0.1)
+    green = {i: sum(lights.update(float(t))[i] == GREEN for t in times) * 0.1 for i in (into_n4, block_w, stem)}
+    assert green[into_n4] == pytest.approx(LINKED_GREEN, abs=0.11) and green[block_w] == pytest.approx(LINKED_GREEN, abs=0.11)
+    assert green[stem] == pytest.approx(lights.green, abs=0.11) and lights.green < LINKED_GREEN
     for town in ("town01", "square"):  # no short block: every junction keeps its own random offset
         assert TrafficLights(get_town(town).lanes).links == []
 

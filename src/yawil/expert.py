@@ -120,18 +120,24 @@ class ExpertState:
 class _RouteCache:
     """Arc lengths and curvature of one route, computed once per episode."""
 
+    TAIL = 12  # metres of straight road assumed past the goal
+
     def __init__(self, route: Route) -> None:
         xy = np.asarray(route.xy, dtype=np.float64)
         if xy.ndim != 2 or xy.shape[1] != 2 or xy.shape[0] < 2 or not np.all(np.isfinite(xy)):
             raise ValueError(f"route.xy must be a finite (N, 2) array with N >= 2, got shape {xy.shape}")
         self.route = route
-        self.xy = xy
+        # a straight tail past the goal, so that what stands just beyond it is on the corridors too (the ego's
+        # front overshoots the goal: a queue standing past it was invisible, and the ego ran into its tail)
+        end_yaw = float(route.lane_yaw[-1])
+        tail = xy[-1] + np.arange(1.0, self.TAIL + 0.5)[:, None] * np.array([math.cos(end_yaw), math.sin(end_yaw)])
+        self.xy = xy = np.vstack([xy, tail])
         seg = np.diff(xy, axis=0)
         seg_len = np.linalg.norm(seg, axis=1)
         self.seg_len = np.maximum(seg_len, 1e-9)
         self.s = np.concatenate([[0.0], np.cumsum(seg_len)])
-        self.heading = np.arctan2(seg[:, 1], seg[:, 0])  # (N-1,)
-        self.length = float(self.s[-1])
+        self.heading = np.arctan2(seg[:, 1], seg[:, 0])  # (N-1+TAIL,)
+        self.length = float(self.s[-1 - len(tail)])  # the route's, without the tail
         self.curvature = self._curvature(window=2.5)
         self.options = np.asarray(route.options, dtype=np.int64)
         self.junctions = self._junction_spans()

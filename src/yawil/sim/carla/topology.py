@@ -28,7 +28,7 @@ import networkx as nx
 import numpy as np
 
 from yawil.sim.carla.convert import xy_from_carla, yaw_from_carla
-from yawil.sim.town.planner import PRE_JUNCTION, WAYPOINT_STEP
+from yawil.sim.town.planner import PRE_JUNCTION, stations
 from yawil.sim.types import Pose, RoadOption, Route, wrap_angle
 
 MAP_FORMAT = "yawil-carla-map/1"
@@ -358,9 +358,7 @@ class CarlaTopology:
         total = float(cum[-1])
         if total < 1.0:
             raise ValueError(f"route is only {total:.2f} m long on map {self.name!r}; start and goal must be at least 1 m apart")
-        d = np.arange(0.0, total, WAYPOINT_STEP)
-        if total - d[-1] > 1e-6:
-            d = np.append(d, total)
+        d = stations(total)
         src = np.clip(np.searchsorted(cum, d, side="right") - 1, 0, len(cum) - 1)
         r_xy = np.stack([np.interp(d, cum, xy[:, 0]), np.interp(d, cum, xy[:, 1])], axis=1)
         r_yaw = np.array([wrap_angle(float(a)) for a in np.interp(d, cum, yaw_raw)])

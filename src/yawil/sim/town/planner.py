@@ -63,6 +63,12 @@ def plan_route(lanes: LaneGraph, start: Pose, goal: Pose) -> PlannedRoute:
     return sample_route(lanes, seq, ss, sg)
 
 
+def stations(total: float) -> np.ndarray:
+    """Arc lengths of a route's waypoints: every WAYPOINT_STEP metres, plus the end, so the goal is a waypoint."""
+    d = np.arange(0.0, total, WAYPOINT_STEP)
+    return np.append(d, total) if total - d[-1] > 1e-6 else d
+
+
 def sample_route(lanes: LaneGraph, seq: list[int], s_start: float, s_goal: float) -> PlannedRoute:
     """Dense waypoints along a lane sequence from s_start on the first lane to s_goal on the last."""
     lo = np.array([s_start] + [0.0] * (len(seq) - 1))
@@ -73,9 +79,7 @@ def sample_route(lanes: LaneGraph, seq: list[int], s_start: float, s_goal: float
     total = float(cum[-1])
     if total < 1.0:
         raise ValueError(f"route is only {total:.2f} m long; start and goal must be at least 1 m apart along the lanes")
-    d = np.arange(0.0, total, WAYPOINT_STEP)
-    if total - d[-1] > 1e-6:
-        d = np.append(d, total)
+    d = stations(total)
     seg = np.clip(np.searchsorted(cum, d, side="right") - 1, 0, len(seq) - 1)
     lane_ids = np.array(seq)[seg]
     s_local = lo[seg] + (d - cum[seg])

@@ -169,9 +169,12 @@ def test_route_lights_are_stop_lines_before_junctions(town: CarlaTopology) -> No
     for idx, lid in r.lights:
         stop = next(s for s in town.stops if s.light_id == lid)
         assert math.hypot(r.xy[idx, 0] - stop.x, r.xy[idx, 1] - stop.y) <= 0.6
-    # a route that ends before the junction passes no light
-    short = town.plan(WEST_EASTBOUND, Pose(-15.0, -1.75, 0.0)).route
+    # a route that ends well before the junction passes no light...
+    short = town.plan(WEST_EASTBOUND, Pose(-25.0, -1.75, 0.0)).route
     assert short.lights == () and runs(short.options) == [F]
+    # ...but one ending 3 m before the stop line does: the car stopping at its goal reaches over the line
+    near = town.plan(WEST_EASTBOUND, Pose(-15.0, -1.75, 0.0)).route
+    assert near.lights == ((len(near.xy) - 1, 101),)
 
 
 def test_snap_respects_direction_and_unreachable_goals_fail(town: CarlaTopology) -> None:

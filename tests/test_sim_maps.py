@@ -13,7 +13,15 @@ import numpy as np
 import pytest
 
 from yawil.sim.town.layout import BUILTIN_TOWNS, load_layout, parse_layout
-from yawil.sim.town.planner import _graph, plan_route, random_route, route_endpoints, square_tasks
+from yawil.sim.town.planner import (
+    GOAL_REACH,
+    _graph,
+    plan_route,
+    random_route,
+    route_endpoints,
+    sample_route,
+    square_tasks,
+)
 from yawil.sim.town.town import get_town
 from yawil.sim.types import Pose, RoadOption
 
@@ -141,3 +149,18 @@ def test_user_layout_file_and_unreachable_goal(tmp_path: Path) -> None:
     p2.write_text(json.dumps(two))
     with pytest.raises(ValueError, match="unreachable"):
         plan_route(get_town(str(p2)).lanes, Pose(50.0, -1.75, 0.0), Pose(350.0, -1.75, 0.0))
+
+
+def test_a_light_just_past_the_goal_is_on_the_route() -> None:
+    """Town02 one-turn route 5 ends 2.3 m before the stop line of the next junction: the car stopping at the
+    goal crossed that red line with its front bumper, but the route listed no light there, so the expert
+    never looked at it (a red light in the expert's Table IV)."""
+    lanes = get_town("town02").lanes
+    lane = 8  # 60 m, ends at a signalised junction
+    light = int(lanes.light_of_lane[lane])
+    stop_s = lanes.approaches[light].stop_s
+    near = sample_route(lanes, [lane], 10.0, stop_s - 2.0).route
+    assert [lt for _, lt in near.lights] == [light]
+    assert abs(near.xy[near.lights[0][0], 0] - near.xy[-1, 0]) <= 1.0  # stop index clamped to the route's end
+    far = sample_route(lanes, [lane], 10.0, stop_s - GOAL_REACH - 1.0).route
+    assert far.lights == ()

@@ -28,7 +28,7 @@ import networkx as nx
 import numpy as np
 
 from yawil.sim.carla.convert import xy_from_carla, yaw_from_carla
-from yawil.sim.town.planner import PRE_JUNCTION, stations
+from yawil.sim.town.planner import GOAL_REACH, PRE_JUNCTION, WAYPOINT_STEP, stations
 from yawil.sim.types import Pose, RoadOption, Route, wrap_angle
 
 MAP_FORMAT = "yawil-carla-map/1"
@@ -373,17 +373,23 @@ class CarlaTopology:
         return CarlaRoute(route, road[src].astype(np.int64), lane[src].astype(np.int64), r_junc, tuple(int(e) for e in seq))
 
     def _route_lights(self, xy: np.ndarray, yaw: np.ndarray, junc: np.ndarray) -> tuple[tuple[int, int], ...]:
-        """(waypoint index of the stop line, light id) of each light the route passes before a junction."""
+        """(waypoint index of the stop line, light id) of each light the route passes before a junction, and of
+        one within GOAL_REACH past the goal (a car stopping at the goal crosses it; its index is the goal's)."""
+        n = len(xy)
+        reach = np.arange(WAYPOINT_STEP, GOAL_REACH + 1e-9, WAYPOINT_STEP)
+        tail = xy[-1] + reach[:, None] * np.array([math.cos(yaw[-1]), math.sin(yaw[-1])])
+        pts, hdg = np.vstack([xy, tail]), np.concatenate([yaw, np.full(len(reach), yaw[-1])])
         found: dict[int, int] = {}
         for stop in self.stops:
-            near = np.hypot(xy[:, 0] - stop.x, xy[:, 1] - stop.y) <= STOP_MATCH_M
-            near &= np.cos(yaw - stop.yaw) >= STOP_MATCH_COS
+            near = np.hypot(pts[:, 0] - stop.x, pts[:, 1] - stop.y) <= STOP_MATCH_M
+            near &= np.cos(hdg - stop.yaw) >= STOP_MATCH_COS
             idx = np.flatnonzero(near)
             if not len(idx):
                 continue
-            i = int(idx[np.argmin(np.hypot(xy[idx, 0] - stop.x, xy[idx, 1] - stop.y))])
-            if junc[i + 1:].any() and stop.light_id not in found.values():
-                found[i] = stop.light_id
+            i = int(idx[np.argmin(np.hypot(pts[idx, 0] - stop.x, pts[idx, 1] - stop.y))])
+            at_goal = i >= n - 1 - len(reach)
+            if (junc[i + 1:].any() or at_goal) and stop.light_id not in found.values():
+                found[min(i, n - 1)] = stop.light_id
         return tuple(sorted(found.items()))
 
 

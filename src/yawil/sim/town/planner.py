@@ -17,6 +17,7 @@ from yawil.sim.types import Pose, RoadOption, Route
 
 PRE_JUNCTION = 5.0  # metres before a junction connector that already carry its option
 WAYPOINT_STEP = 1.0
+GOAL_REACH = 5.0  # m past the goal a car's front bumper may reach when it stops there: a light within it counts
 
 
 @dataclass(frozen=True)
@@ -100,11 +101,11 @@ def sample_route(lanes: LaneGraph, seq: list[int], s_start: float, s_goal: float
     lights: list[tuple[int, int]] = []
     for k, lid in enumerate(seq):
         light = int(lanes.light_of_lane[lid])
-        if light < 0 or k == len(seq) - 1:
+        if light < 0:
             continue
         stop_s = lanes.approaches[light].stop_s
-        if stop_s < lo[k]:
-            continue
+        if stop_s < lo[k] or (k == len(seq) - 1 and stop_s > hi[k] + GOAL_REACH):
+            continue  # behind the start, or beyond the reach of a car stopping at the goal
         dist = cum[k] + stop_s - lo[k]
         lights.append((int(min(np.searchsorted(d, dist), len(d) - 1)), light))
     route = Route(xy=xy, options=options, lane_yaw=yaw, lights=tuple(lights))

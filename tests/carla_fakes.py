@@ -137,6 +137,7 @@ class FakeCarlaServer:
     def __init__(self, version: str = VERSION, town: str = "Town01") -> None:
         self.version = version
         self.crashed = False
+        self.timeouts: list[float] = []  # every set_timeout, in order
         self._id = 100
         self.actors: dict[int, FakeActor] = {}
         self.settings = carla.WorldSettings()
@@ -162,7 +163,7 @@ class FakeCarlaServer:
         return self.version
 
     def set_timeout(self, seconds: float) -> None:
-        pass
+        self.timeouts.append(seconds)
 
     def get_world(self) -> FakeCarlaServer:
         self.check()

@@ -144,3 +144,12 @@ def test_missing_file_in_the_carla_folder_names_the_carla_commands(tmp_path: Pat
         load_routes("town01", tmp_path / "carla")
     with pytest.raises(ValueError, match=r"yawil bench routes --town town01"):  # elsewhere: the embedded command
         load_routes("town01", tmp_path)
+
+
+def test_timeout_reaches_the_client(server: FakeCarlaServer, tmp_path: Path) -> None:
+    assert main([*RUN, "--condition", "new-town-weather", "--routes", "0", "--timeout", "3.5",
+                 "--out", str(tmp_path / "r")]) == 0
+    assert server.timeouts[0] == 3.5 and 3.5 in server.timeouts[-2:]  # the call timeout, map loads aside
+    assert max(server.timeouts) >= 60.0  # the map load got its longer one
+    with pytest.raises(SystemExit, match="yawil bench: timeout must be a positive number of seconds, got 0.0"):
+        main([*RUN, "--condition", "new-town-weather", "--timeout", "0", "--out", str(tmp_path / "r0")])

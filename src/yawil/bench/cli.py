@@ -47,6 +47,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--backend", default="embedded", choices=("embedded", "carla"), help="simulator (default embedded)")
     p.add_argument("--host", default="localhost", help="--backend carla: server host (default localhost)")
     p.add_argument("--port", type=int, default=2000, help="--backend carla: server port (default 2000)")
+    p.add_argument("--timeout", type=float, default=10.0,
+                   help="--backend carla: seconds a client call may take before it counts as a simulator error "
+                        "(default 10; map loads get at least 60)")
     p.add_argument("--town", default=None, help="routes/validate: town01 | town02 | square (default: all three)")
     p.add_argument("--routes-dir", default=None, help="routes/validate: folder of route files (default: the package's)")
     p.add_argument("--seed", type=int, default=0, help="routes: seed of the route draw (default 0)")
@@ -153,7 +156,7 @@ def _carla_episodes(args: argparse.Namespace) -> tuple[list[Any], Callable[[], A
             towns.append(town)
     routes_dir = Path(args.routes_dir) if args.routes_dir else None
     try:
-        world = make_world("carla", host=args.host, port=args.port)
+        world = make_world("carla", host=args.host, port=args.port, timeout=args.timeout)
     except CarlaSetupError as err:
         raise ValueError(str(err)) from None
     try:
@@ -177,6 +180,6 @@ def _carla_episodes(args: argparse.Namespace) -> tuple[list[Any], Callable[[], A
     first = [world]
 
     def factory() -> Any:
-        return first.pop() if first else make_world("carla", host=args.host, port=args.port)
+        return first.pop() if first else make_world("carla", host=args.host, port=args.port, timeout=args.timeout)
 
     return eps, factory, world

@@ -66,6 +66,8 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--backend", default="embedded", choices=("embedded", "carla"), help="simulator (default embedded)")
     p.add_argument("--host", default="localhost", help="--backend carla: server host (default localhost)")
     p.add_argument("--port", type=int, default=2000, help="--backend carla: server port (default 2000)")
+    p.add_argument("--timeout", type=float, default=10.0,
+                   help="--backend carla: seconds a client call may take (default 10; map loads get at least 60)")
     return p
 
 
@@ -83,7 +85,7 @@ def run(args: argparse.Namespace) -> int:
 
     if args.backend != "embedded" and args.workers != 1:
         raise SystemExit(f"yawil collect: --backend {args.backend} drives one server: use --workers 1 (got {args.workers})")
-    factory = world_factory(args.backend, **({} if args.backend == "embedded" else {"host": args.host, "port": args.port}))
+    factory = world_factory(args.backend, **({} if args.backend == "embedded" else {"host": args.host, "port": args.port, "timeout": args.timeout}))
     summary = collect(args.out, town=args.town, weathers=args.weathers, frames=args.frames, episodes=args.episodes,
                       workers=args.workers, seed=args.seed, config=cfg, progress=not args.quiet,
                       world_factory=factory)  # fmt: skip

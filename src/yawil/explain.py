@@ -126,7 +126,7 @@ def grid_figure(items: Sequence[Explained], alpha: float = DEFAULT_ALPHA, path: 
     fig, axes = plt.subplots(len(items), n_cols, figsize=(2.6 * n_cols, 1.45 * len(items)), squeeze=False)
     for r, it in enumerate(items):
         axes[r, 0].imshow(it.image)
-        axes[r, 0].set_ylabel(it.title, fontsize=7)
+        axes[r, 0].set_ylabel(it.title.replace(" (", "\n("), fontsize=6)  # two lines: one would overflow its row
         axes[r, 0].set_title(
             f"s {it.steer:+.2f} t {it.throttle:.2f} b {it.brake:.2f} v {it.speed * 3.6:.0f}km/h", fontsize=7
         )

@@ -62,8 +62,7 @@ class TrafficLights:
         for groups in groups_of.values():
             t = 0.0
             for g in groups:
-                g_green = linked_green if any(self.group[i] == self.group[j] and self.node[i] == self.node[j]
-                                              for i in g for j in long_phase) else green
+                g_green = linked_green if long_phase.intersection(g) else green
                 self.green_of[g] = g_green
                 self.start[g] = t
                 t += g_green + yellow + all_red

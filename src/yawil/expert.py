@@ -197,9 +197,10 @@ class _RouteCache:
         return i, s, float(math.copysign(dist[k], cross))
 
     def point_at(self, s: float) -> np.ndarray:
-        """The route point at arc length s; past the end, extrapolated along the last segment."""
-        if s >= self.length:
-            return np.asarray(self.xy[-1] + (s - self.length) * np.array([math.cos(self.heading[-1]), math.sin(self.heading[-1])]))
+        """The route point at arc length s (the tail past the goal included); beyond the tail, extrapolated."""
+        end = float(self.s[-1])
+        if s >= end:
+            return np.asarray(self.xy[-1] + (s - end) * np.array([math.cos(self.heading[-1]), math.sin(self.heading[-1])]))
         s = max(s, 0.0)
         i = min(int(np.searchsorted(self.s, s, side="right")) - 1, len(self.heading) - 1)
         t = (s - self.s[i]) / self.seg_len[i]

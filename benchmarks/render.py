@@ -17,6 +17,7 @@ import numpy as np
 
 from yawil.sim.town.geometry import ActorView, Box, LightPost, Marking, Style, TownGeometry
 from yawil.sim.town.render import CameraRenderer
+from yawil.sim.town.weather_fx import post_effects
 from yawil.sim.types import Pose
 
 R, WALK = 3.5, 3.0  # road half width, sidewalk width
@@ -143,7 +144,7 @@ def run(backend: str, frames: int, weather: str, town_name: str = "grid") -> dic
     img = r._grab()
     t = time.perf_counter()
     for i in range(frames):
-        r._post(img, i)
+        post_effects(img, r._haze, r._haze_color, r._rain_layers, i)
     t_post = time.perf_counter() - t
     r.close()
     return {"build_s": build, "ms": 1e3 * t_total / frames, "post_ms": 1e3 * t_post / frames}

@@ -1,4 +1,5 @@
-"""Camera renderer: shape, determinism, projection, actors, lights, weather, several towns per process."""
+"""Camera renderer: shape, determinism, projection, actors, lights, weather, several towns per process;
+and its numpy parts alone: camera pose, cell clipping, haze and rain."""
 
 from __future__ import annotations
 
@@ -7,10 +8,13 @@ import math
 import numpy as np
 import pytest
 
+from yawil.sim.town.camera import CameraConfig, camera_pose, reference_projection
 from yawil.sim.town.geometry import ActorView, Box, LightPost, Marking, Style, TownGeometry
-from yawil.sim.town.render import CameraConfig, CameraRenderer, reference_projection
+from yawil.sim.town.render import CameraRenderer
+from yawil.sim.town.scene_mesh import clip_to_cells
+from yawil.sim.town.weather_fx import haze_map, post_effects, rain_layers
 from yawil.sim.types import Pose
-from yawil.sim.weather import TEST_WEATHERS, TRAIN_WEATHERS
+from yawil.sim.weather import TEST_WEATHERS, TRAIN_WEATHERS, get_weather
 
 W = 3.5  # lane width
 ARM = 70.0  # arm length from the centre
@@ -202,3 +206,67 @@ def test_opengl_backend_sees_the_same_scene() -> None:
         b = sw.render(EGO, [car], {0: "red"}, "WetNoon", 0)
     assert a.shape == b.shape == (88, 200, 3)
     assert np.abs(a.astype(int) - b.astype(int)).mean() < 12.0
+
+
+def test_camera_pose_follows_the_mount() -> None:
+    x, y, z, yaw = camera_pose(Pose(1.0, 2.0, math.pi / 2))  # mount (2, 0, 1.4): 2 m ahead, facing +y
+    assert np.allclose((x, y, z, yaw), (1.0, 4.0, 1.4, math.pi / 2))
+
+
+def polygon_area(p: np.ndarray) -> float:
+    x, y = p[:, 0], p[:, 1]
+    return 0.5 * abs(float(np.dot(x, np.roll(y, -1)) - np.dot(y, np.roll(x, -1))))
+
+
+@pytest.mark.parametrize("poly", [
+    rect(-3.0, 4.0, 27.0, 9.5),
+    np.array([[0.0, 0.0], [23.0, 4.0], [5.0, 31.0]]),
+    np.array([[12.0, -8.0], [30.0, 10.0], [12.0, 28.0], [-6.0, 10.0]]),  # a diamond across many cells
+])
+def test_clip_to_cells_keeps_area_and_stays_in_one_cell(poly: np.ndarray) -> None:
+    pieces = clip_to_cells(poly, 10.0)
+    assert len(pieces) > 1
+    assert math.isclose(sum(polygon_area(p) for p in pieces), polygon_area(poly), rel_tol=1e-9)
+    for p in pieces:
+        lo, hi = p.min(0), p.max(0)
+        cell = np.floor((lo + hi) / 2 / 10.0)
+        assert np.all(lo >= cell * 10.0 - 1e-9) and np.all(hi <= (cell + 1) * 10.0 + 1e-9), p
+
+
+def test_haze_map_is_strongest_at_the_horizon_and_off_without_haze() -> None:
+    cfg = CameraConfig()
+    clear = haze_map(get_weather("ClearNoon"), cfg)
+    rain = haze_map(get_weather("HardRainNoon"), cfg)
+    assert clear.shape == rain.shape == (cfg.height, 1, 1)
+    assert np.all(rain >= clear) and np.all((rain >= 0) & (rain <= 1))
+    horizon = int((cfg.full_height / 2 - cfg.crop_top) * cfg.height / (cfg.crop_bottom - cfg.crop_top))
+    w = get_weather("HardRainNoon")  # depth capped at haze_max_depth: the horizon rows share the maximum
+    top = min(1.0, 0.6 + 0.4 * w.haze) * (1.0 - math.exp(-cfg.haze_max_depth * w.haze / 60.0))
+    assert math.isclose(float(rain[horizon, 0, 0]), top, rel_tol=1e-6) and math.isclose(float(rain.max()), top, rel_tol=1e-6)
+    assert rain[0, 0, 0] < top / 2 and rain[-1, 0, 0] < top / 2
+    below = rain[horizon + 1:, 0, 0]
+    assert np.all(np.diff(below) <= 0)  # nearer ground toward the bottom: less haze
+    w = get_weather("ClearNoon")
+    none = haze_map(type(w)(**{**w.__dict__, "haze": 0.0}), cfg)
+    assert not none.any()
+
+
+def test_rain_layers_and_post_effects() -> None:
+    assert rain_layers(0.0, 88, 200) == []
+    a, b = rain_layers(0.4, 88, 200), rain_layers(0.4, 88, 200)
+    assert len(a) == 8
+    for (ra, ca), (rb, cb) in zip(a, b, strict=True):
+        assert np.array_equal(ra, rb) and np.array_equal(ca, cb)
+        assert ra.min() >= 0 and ra.max() < 88 and ca.min() >= 0 and ca.max() < 200
+        assert len(set(zip(ra.tolist(), ca.tolist(), strict=True))) == ra.size  # each pixel once
+    img = np.full((88, 200, 3), 40, np.uint8)
+    no_haze = np.zeros((88, 1, 1), np.float32)
+    assert np.array_equal(post_effects(img, no_haze, np.zeros(3, np.float32), [], 5), img)
+    out0 = post_effects(img, no_haze, np.zeros(3, np.float32), a, 0)
+    changed = np.nonzero(np.any(out0 != img, axis=2))
+    order = np.lexsort((a[0][1], a[0][0]))
+    assert np.array_equal(changed[0], a[0][0][order]) and np.array_equal(changed[1], a[0][1][order])  # layer 0 only
+    out8 = post_effects(img, no_haze, np.zeros(3, np.float32), a, 8)  # layer 0 again, 53 px to the side
+    assert np.array_equal(np.roll(out0, 53, axis=1), out8)
+    hazy = post_effects(img, np.full((88, 1, 1), 0.5, np.float32), np.full(3, 240.0, np.float32), [], 0)
+    assert np.all(hazy == 140)

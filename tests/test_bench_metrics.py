@@ -19,6 +19,7 @@ from yawil.bench.metrics import (
     task_violations,
     timeout_for,
 )
+from yawil.sim.criteria import GoalCriterion
 from yawil.sim.types import Event, EventKind, Observation, Pose, RoadOption, Route
 
 
@@ -77,6 +78,34 @@ def test_goal_of_a_looping_route_counts_only_at_its_end() -> None:
     assert not tr.update(at(1))  # 0.5 m from the goal, but the whole loop is still ahead
     assert not tr.update(at(200))
     assert tr.update(at(398)) and tr.result()["success"]
+
+
+def test_success_measures_metres_of_route_left_and_agrees_with_the_world() -> None:
+    """5 m waypoints (a CARLA planner's spacing): the goal needs <= 10 m of route left, not 10 waypoints."""
+    xy = np.stack([np.arange(0.0, 101.0, 5.0), np.zeros(21)], axis=1)
+    route = Route(xy=xy, options=np.full(21, 4, np.int8), lane_yaw=np.zeros(21))
+
+    def at(x: float, i: int) -> Observation:
+        return Observation(
+            image=None, speed=5.0, pose=Pose(x, 0.0, 0.0), route=route, route_index=i,
+            command=RoadOption.LANEFOLLOW, events=(), time=0.0, frame=0, done=False, distance_driven=0.0,
+            town="t", bounds=(0, -10, 100, 10), weather="ClearNoon",
+        )  # fmt: skip
+
+    tr = EpisodeTracker(goal_xy=(100.0, 0.0), timeout_s=600.0)
+    world_rule = GoalCriterion(xy)
+    tr.start(at(0.0, 0))
+    for i in (10, 17):  # at the goal, but 50 m and 15 m of route still ahead of the projection
+        assert not tr.update(at(100.0, i)) and world_rule.update(0.1, 100.0, 0.0, i) == []
+    assert tr.update(at(100.0, 18)) and tr.result()["success"]
+    assert len(world_rule.update(0.2, 100.0, 0.0, 18)) == 1
+
+
+def test_goal_must_be_the_routes_end() -> None:
+    tr = EpisodeTracker(goal_xy=(50.0, 0.0), timeout_s=60.0)
+    tr.start(_obs(0.0))
+    with pytest.raises(ValueError, match="goal_xy"):
+        tr.update(_obs(1.0))
 
 
 def test_first_collision_ends_with_its_kind_even_at_goal() -> None:

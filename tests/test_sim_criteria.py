@@ -70,11 +70,14 @@ def test_progress_distance_goal_timeout() -> None:
     d = DistanceDrivenCriterion()
     d.update((0, 0), (3, 4))
     assert d.update((3, 4), (3, 5)) == pytest.approx(6.0)
-    g = GoalCriterion(route[-1])
-    assert g.update(1.0, 45.0, 0.0) == [] and len(g.update(1.1, 47.5, 0.5)) == 1 and g.update(1.2, 49, 0) == []
-    loop = GoalCriterion((0.0, 0.5), last_index=400)  # a loop whose goal lies next to its start
-    assert loop.update(0.1, 0.0, 0.0, progress_index=1) == [] and loop.update(0.2, 0.0, 0.0) == []
-    assert len(loop.update(9.0, 0.0, 0.0, progress_index=395)) == 1
+    g = GoalCriterion(route)
+    assert g.update(1.0, 45.0, 0.0, 45) == [] and len(g.update(1.1, 47.5, 0.5, 47)) == 1
+    assert g.update(1.2, 49, 0, 49) == []  # once
+    ang = np.linspace(0.0, 2 * np.pi, 401)
+    loop_xy = np.stack([30.0 * np.sin(ang), 30.0 * (1.0 - np.cos(ang)) + 0.5], axis=1)  # goal next to its start
+    loop = GoalCriterion(loop_xy)
+    assert loop.update(0.1, 0.0, 0.5, 1) == [] and loop.update(0.2, 0.0, 0.5, 200) == []
+    assert len(loop.update(9.0, 0.0, 0.5, 395)) == 1
     t = TimeoutCriterion(2.0)
     assert t.update(1.9, 0, 0) == [] and t.update(2.0, 0, 0)[0].kind is EventKind.TIMEOUT
     with pytest.raises(ValueError, match="timeout_s"):

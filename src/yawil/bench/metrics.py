@@ -1,7 +1,8 @@
 """Per-episode judging and the aggregate figures of the paper's Tables I-IV.
 
-One protocol for every agent (docs/benchmark.md): success = within `SUCCESS_RADIUS` metres of the goal before
-the timeout with no collision of any kind; an episode ends at success, timeout or the first collision.
+One protocol for every agent (docs/benchmark.md): success = the goal reached by `yawil.sim.criteria.goal_reached`
+(the rule the worlds also use) before the timeout with no collision of any kind; an episode ends at success,
+timeout or the first collision.
 Violations are counted over successful episodes only, as the paper does. Standard deviations are population
 standard deviations (ddof=0): the paper's own figures (66.67 +- 0.94 over 3 runs, 31.6 +- 0.49 over 5) are
 reproduced by that choice and not by ddof=1.
@@ -19,10 +20,9 @@ from typing import Any
 
 import numpy as np
 
+from yawil.sim.criteria import goal_reached, route_left_table
 from yawil.sim.types import DT, EventKind, Observation
 
-SUCCESS_RADIUS = 2.0  # metres from the route's last waypoint
-GOAL_ROUTE_LEFT = 10.0  # metres of route still ahead of the ego at most, for the goal to count
 FAILURE_REASONS: tuple[str, ...] = (
     "collision_vehicle",
     "collision_pedestrian",
@@ -49,17 +49,6 @@ def collision_reason(other_type: str | None) -> str:
     return "collision_static"
 
 
-def route_left(obs: Observation) -> float:
-    """Length of route still ahead of the ego's projection.
-
-    Being near the goal is not enough: a route that loops back past its own start (town02 navigation 13
-    ends 0.4 m from where it begins) would otherwise be "reached" on the first step.
-    """
-    xy = np.asarray(obs.route.xy, dtype=np.float64)
-    i = min(max(int(obs.route_index), 0), len(xy) - 1)
-    return float(np.hypot(*np.diff(xy[i:], axis=0).T).sum())
-
-
 @dataclass
 class EpisodeTracker:
     """Judges one episode from its observations; `update` returns True once the episode is over.
@@ -84,6 +73,8 @@ class EpisodeTracker:
     collisions: list[dict[str, Any]] = field(default_factory=list)
     trajectory: list[list[float]] = field(default_factory=list)
     final_distance_m: float = math.inf
+    _route_xy: np.ndarray | None = field(default=None, init=False, repr=False, compare=False)
+    _left: np.ndarray | None = field(default=None, init=False, repr=False, compare=False)
 
     def start(self, obs: Observation) -> None:
         """Record the first observation (after reset) without judging it."""
@@ -92,6 +83,19 @@ class EpisodeTracker:
 
     def _goal_distance(self, obs: Observation) -> float:
         return math.hypot(obs.pose.x - self.goal_xy[0], obs.pose.y - self.goal_xy[1])
+
+    def _goal_reached(self, obs: Observation) -> bool:
+        """The simulator's own rule; the route's table is built once per route, not summed each step."""
+        xy = obs.route.xy
+        if self._route_xy is not xy:
+            end = (float(xy[-1][0]), float(xy[-1][1]))
+            if math.hypot(end[0] - self.goal_xy[0], end[1] - self.goal_xy[1]) > 1e-6:
+                raise ValueError(
+                    f"EpisodeTracker.goal_xy {self.goal_xy} is not the observed route's last "
+                    f"waypoint {end}; the goal must be the route's end"
+                )
+            self._route_xy, self._left = xy, route_left_table(xy)
+        return goal_reached(obs.pose.x, obs.pose.y, xy, obs.route_index, self._left)
 
     def update(self, obs: Observation) -> bool:
         """Account for one step's observation; True when the episode ends with it."""
@@ -129,12 +133,12 @@ class EpisodeTracker:
         self.final_distance_m = self._goal_distance(obs)
         if self.collisions:
             self.reason = collision_reason(self.collisions[0]["type"])
-        elif self.final_distance_m <= SUCCESS_RADIUS and route_left(obs) <= GOAL_ROUTE_LEFT:
+        elif self._goal_reached(obs):
             self.success = True
         elif self.time_s >= self.timeout_s - 1e-9:
             self.reason = "timeout"
         elif obs.done:
-            # The world stopped on its own rule (goal reached by its threshold, or its timeout) before ours.
+            # The world stopped on its own timeout before ours (its goal rule is ours, judged above).
             self.reason = "timeout"
         else:
             return False

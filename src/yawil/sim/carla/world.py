@@ -392,7 +392,7 @@ class CarlaWorld:
         self.c_light = RedLightCriterion(*stop_line_arrays(self.topology.stops))
         self.c_progress = RouteProgressCriterion(route.xy)
         self.c_distance = DistanceDrivenCriterion()
-        self.c_goal = GoalCriterion(route.xy[-1], last_index=len(route.xy) - 1)
+        self.c_goal = GoalCriterion(route.xy)
         self.timeout_s = float(sc.timeout_s) if sc.timeout_s is not None else nocrash_timeout(route.length)
         self.c_timeout = TimeoutCriterion(self.timeout_s)
         self.done = False
@@ -467,7 +467,7 @@ class CarlaWorld:
         events += self.c_lane.update(t, p.x, p.y, self._region())
         events += self.c_light.update(t, prev, (p.x, p.y), p.yaw, self._light_names())
         self.c_distance.update(prev, (p.x, p.y))
-        events += self.c_goal.update(t, p.x, p.y, self.c_progress.max_index)
+        events += self.c_goal.update(t, p.x, p.y, self.c_progress.index)
         events += self.c_timeout.update(t, p.x, p.y)
         self._prev_xy = (p.x, p.y)
         if any(e.kind in (EventKind.GOAL_REACHED, EventKind.TIMEOUT) for e in events):

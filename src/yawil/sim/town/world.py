@@ -116,7 +116,7 @@ class EmbeddedWorld:
                                          np.array([a.yaw for a in aps]))
         self.c_progress = RouteProgressCriterion(route.xy)
         self.c_distance = DistanceDrivenCriterion()
-        self.c_goal = GoalCriterion(route.xy[-1], last_index=len(route.xy) - 1)
+        self.c_goal = GoalCriterion(route.xy)
         self.timeout_s = float(scenario.timeout_s) if scenario.timeout_s is not None else nocrash_timeout(route.length)
         self.c_timeout = TimeoutCriterion(self.timeout_s)
         self._light_objs = [[LightState(a.light, name, a.stop_xy[0], a.stop_xy[1], a.yaw) for name in STATE_NAMES]
@@ -310,7 +310,7 @@ class EmbeddedWorld:
         events += self.c_light.update(t, prev, (ex, ey), self.ego.yaw, self._names)
         self.c_progress.update(ex, ey)
         self.c_distance.update(prev, (ex, ey))
-        events += self.c_goal.update(t, ex, ey, self.c_progress.max_index)
+        events += self.c_goal.update(t, ex, ey, self.c_progress.index)
         events += self.c_timeout.update(t, ex, ey)
         if any(e.kind in (EventKind.GOAL_REACHED, EventKind.TIMEOUT) for e in events):
             self.done = True

@@ -18,7 +18,14 @@ import yaml
 from yawil import models
 from yawil.augment import AugmentConfig, augment_batch, blur
 from yawil.checkpoint import REQUIRED_KEYS, Norm, load_checkpoint, save_checkpoint
-from yawil.train import TrainConfig, epoch_batches, label_arrays, predicted_actions, train
+from yawil.train import (
+    TrainConfig,
+    brake_weights,
+    epoch_batches,
+    label_arrays,
+    predicted_actions,
+    train,
+)
 from yawil.train_cli import _OPTIONS, add_parser, build_config
 
 torch.set_num_threads(2)
@@ -43,6 +50,7 @@ class MemoryDataset(torch.utils.data.Dataset):
         base = rng.integers(0, 60, (n, 3, *SIZE)).astype(np.int16)
         shade = ((self.steer + 0.5) * 190).astype(np.int16)[:, None, None, None]
         self.images = np.clip(base + shade, 0, 255).astype(np.uint8)
+        self.brake = (rng.uniform(0, 1, n) < 0.2).astype(np.float32)  # drawn last: the draws above are unchanged
         self.episode0 = episode0
         self.guidance_config = {"spacing": 2.0, "count": K, "reference": "route"}
 
@@ -54,7 +62,7 @@ class MemoryDataset(torch.utils.data.Dataset):
         return {
             "image": self.images[i],
             "speed": self.speed[i : i + 1],
-            "action": np.array([self.steer[i], throttle, 0.0], dtype=np.float32),
+            "action": np.array([self.steer[i], throttle, self.brake[i]], dtype=np.float32),
             "command": self.command[i],
             "guidance_yaw": self.guidance["yaw"][i],
             "guidance_xy": self.guidance["xy"][i],
@@ -66,6 +74,8 @@ class MemoryDataset(torch.utils.data.Dataset):
     def labels(self, name: str) -> np.ndarray:
         if name == "speed":
             return self.speed
+        if name == "brake":
+            return self.brake
         return self.guidance[name.removeprefix("guidance_")]
 
 
@@ -274,6 +284,32 @@ def test_epoch_order_is_a_seeded_permutation() -> None:
     assert sorted(i for b in a for i in b) == list(range(50)) and [len(b) for b in a] == [16, 16, 16, 2]
 
 
+def test_brake_fraction_draws_braking_frames_at_the_asked_share() -> None:
+    brake = np.zeros(4000)
+    brake[:200] = 1.0  # 5 % braking frames
+    p = brake_weights(brake, 0.3)
+    assert p.sum() == pytest.approx(1.0) and p[0] > p[-1]
+    a = epoch_batches(4000, 64, seed=3, epoch=0, p=p)
+    assert a == epoch_batches(4000, 64, seed=3, epoch=0, p=p) != epoch_batches(4000, 64, seed=3, epoch=1, p=p)
+    drawn = np.array([i for b in a for i in b])
+    assert len(drawn) == 4000 and abs(float((drawn < 200).mean()) - 0.3) < 0.03
+    with pytest.raises(ValueError, match="brake_fraction=0.3: the training split has 0 braking frames"):
+        brake_weights(np.zeros(10), 0.3)
+    with pytest.raises(ValueError, match="brake_fraction"):
+        TrainConfig(brake_fraction=1.0)
+
+
+def test_brake_fraction_run_resumes_to_the_same_weights(tmp_path: Path) -> None:
+    full = train(small(tmp_path, "full", brake_fraction=0.5), splits=splits())
+    plain = train(small(tmp_path, "plain"), splits=splits())
+    assert full.metrics[0]["train_loss"] != plain.metrics[0]["train_loss"]  # other frames were drawn
+    train(small(tmp_path, "part", brake_fraction=0.5, epochs=1), splits=splits())
+    resumed = train(small(tmp_path, "part", brake_fraction=0.5, epochs=2), resume=True, splits=splits())
+    a, b = _weights(Path(full.out) / "last.pt"), _weights(Path(resumed.out) / "last.pt")
+    for key in a:
+        torch.testing.assert_close(a[key], b[key], rtol=0, atol=1e-6, msg=key)
+
+
 # -------------------------------------------------------------------------------------------- checkpoint
 def test_load_checkpoint_errors(tmp_path: Path) -> None:
     with pytest.raises(FileNotFoundError, match="missing.pt"):
@@ -294,7 +330,7 @@ def test_load_checkpoint_errors(tmp_path: Path) -> None:
 
 # ------------------------------------------------------------------------------------------ augmentation
 def test_augmentation_per_sample_and_seeded() -> None:
-    images = torch.rand(64, 3, 88, 200)
+    images = torch.rand(64, 3, 88, 200, generator=torch.Generator().manual_seed(0))
     cfg = AugmentConfig()
     a = augment_batch(images, cfg, torch.Generator().manual_seed(5))
     b = augment_batch(images, cfg, torch.Generator().manual_seed(5))

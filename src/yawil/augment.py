@@ -129,7 +129,7 @@ def _augment_chunk(out: torch.Tensor, u: torch.Tensor, cfg: AugmentConfig, gen: 
     idx = (u[4] < cfg.blur_p).nonzero().squeeze(1)
     if idx.numel():
         sigma = 0.1 + (cfg.blur_sigma - 0.1) * u[5]
-        out[idx] = blur(out[idx], sigma[idx], cfg.blur_kernel)
+        out[idx] = blur(out[idx], sigma[idx], cfg.blur_kernel).clamp_(0.0, 1.0)  # kernel sums round to 1 + 1e-7
 
     # additive Gaussian noise
     idx = (u[6] < cfg.noise_p).nonzero().squeeze(1)

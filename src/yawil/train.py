@@ -75,6 +75,9 @@ class TrainConfig:
     max_steps: int | None = None  # total optimiser steps of the run, across resumes
     max_minutes: float | None = None  # wall-time budget of this invocation
     log_every: int = 10  # steps between TensorBoard points
+    # Share of braking frames (expert brake > BRAKE_LABEL) in each epoch, drawn with replacement; None keeps
+    # the data's own share (about 0.14 in town01). Ours, not the paper's: for short CPU budgets.
+    brake_fraction: float | None = None
     progress: bool = True
     augment: AugmentConfig = field(default_factory=AugmentConfig)
 
@@ -109,6 +112,8 @@ class TrainConfig:
         need(self.max_steps is None or (_is_int(self.max_steps) and self.max_steps >= 1), "max_steps", "None or >= 1")
         need(self.max_minutes is None or (_is_num(self.max_minutes) and self.max_minutes > 0), "max_minutes", "None or > 0")
         need(isinstance(self.progress, bool), "progress", "true or false")
+        need(self.brake_fraction is None or (_is_num(self.brake_fraction) and 0.0 < self.brake_fraction < 1.0),
+             "brake_fraction", "None or a number in (0, 1)")
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
@@ -285,10 +290,36 @@ def label_arrays(dataset: Any, kind: str | None) -> tuple[np.ndarray, np.ndarray
     return cols[0].reshape(-1), (cols[1] if kind is not None else None)
 
 
-def epoch_batches(n: int, batch_size: int, seed: int, epoch: int) -> list[list[int]]:
-    """The batches of one epoch: a permutation drawn from (seed, epoch), so a resumed run finds it again."""
-    order = np.random.default_rng([seed, epoch]).permutation(n)
+def brake_labels(dataset: Any) -> np.ndarray:
+    """The expert brake of every training sample (label columns when the dataset has them)."""
+    if hasattr(dataset, "labels"):
+        return np.asarray(dataset.labels("brake"), dtype=np.float64)
+    return np.array([float(np.asarray(dataset[i]["action"])[2]) for i in range(len(dataset))])
+
+
+def epoch_batches(n: int, batch_size: int, seed: int, epoch: int, p: np.ndarray | None = None) -> list[list[int]]:
+    """The batches of one epoch, drawn from (seed, epoch) so that a resumed run finds them again.
+
+    Without `p` a permutation; with `p` (a probability per sample) n draws with replacement.
+    """
+    rng = np.random.default_rng([seed, epoch])
+    order = rng.permutation(n) if p is None else rng.choice(n, size=n, replace=True, p=p)
     return [order[i : i + batch_size].tolist() for i in range(0, n, batch_size)]
+
+
+BRAKE_LABEL = 0.1  # an expert brake above this marks a braking frame (the agent's own brake threshold)
+
+
+def brake_weights(brake: np.ndarray, fraction: float) -> np.ndarray:
+    """Sampling probabilities that give braking frames `fraction` of the draws, uniform within each group."""
+    braking = np.asarray(brake, dtype=np.float64).reshape(-1) > BRAKE_LABEL
+    k = int(braking.sum())
+    if k == 0 or k == braking.size:
+        raise ValueError(
+            f"brake_fraction={fraction}: the training split has {k} braking frames of {braking.size} "
+            f"(brake > {BRAKE_LABEL}); both kinds are needed to rebalance"
+        )
+    return np.where(braking, fraction / k, (1.0 - fraction) / (braking.size - k))
 
 
 def sequential_batches(n: int, batch_size: int) -> list[list[int]]:
@@ -580,11 +611,12 @@ def train(
         signal.signal(signal.SIGTERM, _raise_interrupt)  # a kill saves like Ctrl-C
     model.train()
     n_batches = 0
+    p = None if cfg.brake_fraction is None else brake_weights(brake_labels(train_ds), cfg.brake_fraction)
     while pos.epoch < cfg.epochs:
         if cfg.max_steps is not None and pos.step >= cfg.max_steps:
             stopped_by = "max_steps"
             break
-        batches = epoch_batches(len(train_ds), cfg.batch_size, cfg.seed, pos.epoch)
+        batches = epoch_batches(len(train_ds), cfg.batch_size, cfg.seed, pos.epoch, p)
         n_batches = len(batches)
         if n_batches == 0:
             raise ValueError("the training split is empty: the dataset roots hold no training frames")

@@ -33,6 +33,8 @@ _OPTIONS: tuple[tuple[str, str, Any, str], ...] = (
     ("--max-steps", "max_steps", int, "stop after this many optimiser steps in total, with a checkpoint"),
     ("--max-minutes", "max_minutes", float, "stop after this many minutes of this invocation, with a checkpoint"),
     ("--log-every", "log_every", int, "steps between TensorBoard points (default 10)"),
+    ("--brake-fraction", "brake_fraction", float,
+     "share of braking frames (expert brake > 0.1) per epoch, drawn with replacement (default: the data's own)"),
     ("--pretrained", "pretrained", str, "ImageNet ResNet34 state dict for the backbone ('YILRatt (pretrained)')"),
 )
 

@@ -103,9 +103,8 @@ def test_success_measures_metres_of_route_left_and_agrees_with_the_world() -> No
 
 def test_goal_must_be_the_routes_end() -> None:
     tr = EpisodeTracker(goal_xy=(50.0, 0.0), timeout_s=60.0)
-    tr.start(_obs(0.0))
-    with pytest.raises(ValueError, match="goal_xy"):
-        tr.update(_obs(1.0))
+    with pytest.raises(ValueError, match="goal_xy"):  # at the start, before any step could end the episode
+        tr.start(_obs(0.0))
 
 
 def test_first_collision_ends_with_its_kind_even_at_goal() -> None:

@@ -4,7 +4,8 @@
     result = train(cfg)                  # runs/yilratt/{best.pt,last.pt,config.yaml,metrics.csv,loss.png,tb/}
     result = train(cfg, resume=True)     # continues from runs/yilratt/last.pt, exactly
 
-Determinism: the data order of epoch e is a permutation drawn from (seed, e), the augmentation of step s
+Determinism: the data order of epoch e is drawn from (seed, e) (a permutation, or draws with replacement
+with `brake_fraction`), the augmentation of step s
 uses a generator seeded from (seed, s), the model is built with `seed`, and the torch/numpy/python RNG
 states are saved, so a stopped run resumed gives the weights an uninterrupted run would have.
 """
@@ -611,6 +612,8 @@ def train(
         signal.signal(signal.SIGTERM, _raise_interrupt)  # a kill saves like Ctrl-C
     model.train()
     n_batches = 0
+    if len(train_ds) == 0:
+        raise ValueError("the training split is empty: the dataset roots hold no training frames")
     p = None if cfg.brake_fraction is None else brake_weights(brake_labels(train_ds), cfg.brake_fraction)
     while pos.epoch < cfg.epochs:
         if cfg.max_steps is not None and pos.step >= cfg.max_steps:

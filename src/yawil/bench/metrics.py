@@ -80,6 +80,7 @@ class EpisodeTracker:
         """Record the first observation (after reset) without judging it."""
         self.trajectory.append([round(obs.pose.x, 2), round(obs.pose.y, 2)])
         self.final_distance_m = self._goal_distance(obs)
+        self._bind_route(obs.route.xy)
 
     def _goal_distance(self, obs: Observation) -> float:
         return math.hypot(obs.pose.x - self.goal_xy[0], obs.pose.y - self.goal_xy[1])
@@ -88,14 +89,18 @@ class EpisodeTracker:
         """The simulator's own rule; the route's table is built once per route, not summed each step."""
         xy = obs.route.xy
         if self._route_xy is not xy:
-            end = (float(xy[-1][0]), float(xy[-1][1]))
-            if math.hypot(end[0] - self.goal_xy[0], end[1] - self.goal_xy[1]) > 1e-6:
-                raise ValueError(
-                    f"EpisodeTracker.goal_xy {self.goal_xy} is not the observed route's last "
-                    f"waypoint {end}; the goal must be the route's end"
-                )
-            self._route_xy, self._left = xy, route_left_table(xy)
+            self._bind_route(xy)
         return goal_reached(obs.pose.x, obs.pose.y, xy, obs.route_index, self._left)
+
+    def _bind_route(self, xy: Any) -> None:
+        """Check that the goal is the route's end and build its table (at start, so a bad goal fails at once)."""
+        end = (float(xy[-1][0]), float(xy[-1][1]))
+        if math.hypot(end[0] - self.goal_xy[0], end[1] - self.goal_xy[1]) > 1e-6:
+            raise ValueError(
+                f"EpisodeTracker.goal_xy {self.goal_xy} is not the observed route's last "
+                f"waypoint {end}; the goal must be the route's end"
+            )
+        self._route_xy, self._left = xy, route_left_table(xy)
 
     def update(self, obs: Observation) -> bool:
         """Account for one step's observation; True when the episode ends with it."""

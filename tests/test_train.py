@@ -284,17 +284,20 @@ def test_epoch_order_is_a_seeded_permutation() -> None:
     assert sorted(i for b in a for i in b) == list(range(50)) and [len(b) for b in a] == [16, 16, 16, 2]
 
 
-def test_brake_fraction_draws_braking_frames_at_the_asked_share() -> None:
-    brake = np.zeros(4000)
-    brake[:200] = 1.0  # 5 % braking frames
-    p = brake_weights(brake, 0.3)
-    assert p.sum() == pytest.approx(1.0) and p[0] > p[-1]
+def test_brake_fraction_draws_slowing_down_frames_at_the_asked_share() -> None:
+    brake, speed = np.zeros(4000), np.full(4000, 5.0)
+    brake[:300] = 1.0
+    speed[200:300] = 0.0  # 200 frames slowing down (5 %), 100 standing on the brake: not oversampled
+    p = brake_weights(brake, speed, 0.3)
+    assert p.sum() == pytest.approx(1.0) and p[0] > p[250] == p[-1]
     a = epoch_batches(4000, 64, seed=3, epoch=0, p=p)
     assert a == epoch_batches(4000, 64, seed=3, epoch=0, p=p) != epoch_batches(4000, 64, seed=3, epoch=1, p=p)
     drawn = np.array([i for b in a for i in b])
     assert len(drawn) == 4000 and abs(float((drawn < 200).mean()) - 0.3) < 0.03
-    with pytest.raises(ValueError, match="brake_fraction=0.3: the training split has 0 braking frames"):
-        brake_weights(np.zeros(10), 0.3)
+    with pytest.raises(ValueError, match="brake_fraction=0.3: the training split has 0 slowing-down frames"):
+        brake_weights(np.ones(10), np.zeros(10), 0.3)
+    with pytest.raises(ValueError, match="differ in length"):
+        brake_weights(np.ones(10), np.zeros(9), 0.3)
     with pytest.raises(ValueError, match="brake_fraction"):
         TrainConfig(brake_fraction=1.0)
 

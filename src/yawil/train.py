@@ -76,8 +76,8 @@ class TrainConfig:
     max_steps: int | None = None  # total optimiser steps of the run, across resumes
     max_minutes: float | None = None  # wall-time budget of this invocation
     log_every: int = 10  # steps between TensorBoard points
-    # Share of braking frames (expert brake > BRAKE_LABEL) in each epoch, drawn with replacement; None keeps
-    # the data's own share (about 0.14 in town01). Ours, not the paper's: for short CPU budgets.
+    # Share of slowing-down frames (expert brake > BRAKE_LABEL at over BRAKE_MIN_SPEED) in each epoch, drawn
+    # with replacement; None keeps the data's own share (about 0.07 in town01). Ours, not the paper's.
     brake_fraction: float | None = None
     progress: bool = True
     augment: AugmentConfig = field(default_factory=AugmentConfig)
@@ -291,11 +291,13 @@ def label_arrays(dataset: Any, kind: str | None) -> tuple[np.ndarray, np.ndarray
     return cols[0].reshape(-1), (cols[1] if kind is not None else None)
 
 
-def brake_labels(dataset: Any) -> np.ndarray:
-    """The expert brake of every training sample (label columns when the dataset has them)."""
+def brake_labels(dataset: Any) -> tuple[np.ndarray, np.ndarray]:
+    """The expert brake and the speed of every training sample (label columns when the dataset has them)."""
     if hasattr(dataset, "labels"):
-        return np.asarray(dataset.labels("brake"), dtype=np.float64)
-    return np.array([float(np.asarray(dataset[i]["action"])[2]) for i in range(len(dataset))])
+        return np.asarray(dataset.labels("brake"), np.float64), np.asarray(dataset.labels("speed"), np.float64)
+    rows = [dataset[i] for i in range(len(dataset))]
+    return (np.array([float(np.asarray(r["action"])[2]) for r in rows]),
+            np.array([float(np.asarray(r["speed"]).reshape(-1)[0]) for r in rows]))
 
 
 def epoch_batches(n: int, batch_size: int, seed: int, epoch: int, p: np.ndarray | None = None) -> list[list[int]]:
@@ -309,18 +311,25 @@ def epoch_batches(n: int, batch_size: int, seed: int, epoch: int, p: np.ndarray 
 
 
 BRAKE_LABEL = 0.1  # an expert brake above this marks a braking frame (the agent's own brake threshold)
+# Standing frames are not oversampled: counting them too (brake_fraction 0.3) taught a YILRatt to stay
+# standing once stopped (docs/training.md, "Oversampling braking frames").
+BRAKE_MIN_SPEED = 1.0  # m/s
 
 
-def brake_weights(brake: np.ndarray, fraction: float) -> np.ndarray:
-    """Sampling probabilities that give braking frames `fraction` of the draws, uniform within each group."""
-    braking = np.asarray(brake, dtype=np.float64).reshape(-1) > BRAKE_LABEL
-    k = int(braking.sum())
-    if k == 0 or k == braking.size:
+def brake_weights(brake: np.ndarray, speed: np.ndarray, fraction: float) -> np.ndarray:
+    """Sampling probabilities that give slowing-down frames `fraction` of the draws, uniform within each group."""
+    brake = np.asarray(brake, dtype=np.float64).reshape(-1)
+    speed = np.asarray(speed, dtype=np.float64).reshape(-1)
+    if brake.shape != speed.shape:
+        raise ValueError(f"brake ({brake.size}) and speed ({speed.size}) labels differ in length")
+    slowing = (brake > BRAKE_LABEL) & (speed > BRAKE_MIN_SPEED)
+    k = int(slowing.sum())
+    if k == 0 or k == slowing.size:
         raise ValueError(
-            f"brake_fraction={fraction}: the training split has {k} braking frames of {braking.size} "
-            f"(brake > {BRAKE_LABEL}); both kinds are needed to rebalance"
+            f"brake_fraction={fraction}: the training split has {k} slowing-down frames of {slowing.size} "
+            f"(brake > {BRAKE_LABEL} at over {BRAKE_MIN_SPEED} m/s); both kinds are needed to rebalance"
         )
-    return np.where(braking, fraction / k, (1.0 - fraction) / (braking.size - k))
+    return np.where(slowing, fraction / k, (1.0 - fraction) / (slowing.size - k))
 
 
 def sequential_batches(n: int, batch_size: int) -> list[list[int]]:
@@ -614,7 +623,7 @@ def train(
     n_batches = 0
     if len(train_ds) == 0:
         raise ValueError("the training split is empty: the dataset roots hold no training frames")
-    p = None if cfg.brake_fraction is None else brake_weights(brake_labels(train_ds), cfg.brake_fraction)
+    p = None if cfg.brake_fraction is None else brake_weights(*brake_labels(train_ds), cfg.brake_fraction)
     while pos.epoch < cfg.epochs:
         if cfg.max_steps is not None and pos.step >= cfg.max_steps:
             stopped_by = "max_steps"

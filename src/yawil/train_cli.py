@@ -34,7 +34,8 @@ _OPTIONS: tuple[tuple[str, str, Any, str], ...] = (
     ("--max-minutes", "max_minutes", float, "stop after this many minutes of this invocation, with a checkpoint"),
     ("--log-every", "log_every", int, "steps between TensorBoard points (default 10)"),
     ("--brake-fraction", "brake_fraction", float,
-     "share of braking frames (expert brake > 0.1) per epoch, drawn with replacement (default: the data's own)"),
+     "share of slowing-down frames (expert brake > 0.1 at over 1 m/s) per epoch, drawn with replacement "
+     "(default: the data's own)"),
     ("--pretrained", "pretrained", str, "ImageNet ResNet34 state dict for the backbone ('YILRatt (pretrained)')"),
 )
 

@@ -312,7 +312,7 @@ def epoch_batches(n: int, batch_size: int, seed: int, epoch: int, p: np.ndarray 
 
 BRAKE_LABEL = 0.1  # an expert brake above this marks a braking frame (the agent's own brake threshold)
 # Standing frames are not oversampled: counting them too (brake_fraction 0.3) taught a YILRatt to stay
-# standing once stopped (docs/training.md, "Oversampling braking frames").
+# standing once stopped (docs/training.md, "A third run").
 BRAKE_MIN_SPEED = 1.0  # m/s
 
 

@@ -23,6 +23,7 @@ from yawil.train import (
     brake_weights,
     epoch_batches,
     label_arrays,
+    label_columns,
     predicted_actions,
     train,
 )
@@ -276,6 +277,7 @@ def test_label_arrays_with_and_without_a_labels_method() -> None:
     assert np.allclose(fast[0], slow[0]) and fast[1] is not None and slow[1] is not None
     assert np.allclose(fast[1], slow[1]) and slow[1].shape == (10, 2 * K)
     assert label_arrays(ds, None)[1] is None
+    assert np.array_equal(label_columns(Plain(), ["brake"])[0], ds.labels("brake"))  # read from the action
 
 
 def test_epoch_order_is_a_seeded_permutation() -> None:

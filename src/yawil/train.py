@@ -277,27 +277,22 @@ def prepare_batch(
 
 
 def label_arrays(dataset: Any, kind: str | None) -> tuple[np.ndarray, np.ndarray | None]:
-    """Speed and guidance of every training sample, for the normalisation statistics.
-
-    A dataset with `labels(name)` gives the label columns without decoding any image; any other dataset
-    is read sample by sample once (correct, but it decodes the images).
-    """
-    names = ["speed"] + ([] if kind is None else [f"guidance_{kind}"])
-    if hasattr(dataset, "labels"):
-        cols = [np.asarray(dataset.labels(n), dtype=np.float64) for n in names]
-    else:
-        rows = [dataset[i] for i in range(len(dataset))]
-        cols = [np.stack([np.asarray(r[n], dtype=np.float64) for r in rows]) if rows else np.zeros(0) for n in names]
+    """Speed and guidance of every training sample, for the normalisation statistics."""
+    cols = label_columns(dataset, ["speed"] + ([] if kind is None else [f"guidance_{kind}"]))
     return cols[0].reshape(-1), (cols[1] if kind is not None else None)
 
 
-def brake_labels(dataset: Any) -> tuple[np.ndarray, np.ndarray]:
-    """The expert brake and the speed of every training sample (label columns when the dataset has them)."""
+def label_columns(dataset: Any, names: Sequence[str]) -> list[np.ndarray]:
+    """Label columns of every sample: `dataset.labels(name)` (no image decoded) when it has it, else read
+    sample by sample once (correct, but it decodes the images). "brake" is the action's third component."""
     if hasattr(dataset, "labels"):
-        return np.asarray(dataset.labels("brake"), np.float64), np.asarray(dataset.labels("speed"), np.float64)
+        return [np.asarray(dataset.labels(n), dtype=np.float64) for n in names]
     rows = [dataset[i] for i in range(len(dataset))]
-    return (np.array([float(np.asarray(r["action"])[2]) for r in rows]),
-            np.array([float(np.asarray(r["speed"]).reshape(-1)[0]) for r in rows]))
+
+    def value(r: Mapping[str, Any], n: str) -> np.ndarray:
+        return np.asarray(r["action"], dtype=np.float64)[2] if n == "brake" else np.asarray(r[n], dtype=np.float64)
+
+    return [np.stack([value(r, n) for r in rows]) if rows else np.zeros(0) for n in names]
 
 
 def epoch_batches(n: int, batch_size: int, seed: int, epoch: int, p: np.ndarray | None = None) -> list[list[int]]:
@@ -623,15 +618,16 @@ def train(
     n_batches = 0
     if len(train_ds) == 0:
         raise ValueError("the training split is empty: the dataset roots hold no training frames")
-    p = None if cfg.brake_fraction is None else brake_weights(*brake_labels(train_ds), cfg.brake_fraction)
+    p = None
+    if cfg.brake_fraction is not None:
+        brake, speed = label_columns(train_ds, ["brake", "speed"])
+        p = brake_weights(brake, speed, cfg.brake_fraction)
     while pos.epoch < cfg.epochs:
         if cfg.max_steps is not None and pos.step >= cfg.max_steps:
             stopped_by = "max_steps"
             break
         batches = epoch_batches(len(train_ds), cfg.batch_size, cfg.seed, pos.epoch, p)
         n_batches = len(batches)
-        if n_batches == 0:
-            raise ValueError("the training split is empty: the dataset roots hold no training frames")
         loader = _loader(train_ds, batches[pos.batch :], cfg, runtime)
         bar = tqdm(
             total=n_batches, initial=pos.batch, desc=f"epoch {pos.epoch + 1}/{cfg.epochs}",

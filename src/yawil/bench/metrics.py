@@ -20,7 +20,7 @@ from typing import Any
 
 import numpy as np
 
-from yawil.sim.criteria import goal_reached, route_left_table
+from yawil.sim.criteria import GoalCriterion
 from yawil.sim.types import DT, EventKind, Observation
 
 FAILURE_REASONS: tuple[str, ...] = (
@@ -73,39 +73,29 @@ class EpisodeTracker:
     collisions: list[dict[str, Any]] = field(default_factory=list)
     trajectory: list[list[float]] = field(default_factory=list)
     final_distance_m: float = math.inf
-    _route_xy: np.ndarray | None = field(default=None, init=False, repr=False, compare=False)
-    _left: np.ndarray | None = field(default=None, init=False, repr=False, compare=False)
+    _goal: GoalCriterion | None = field(default=None, init=False, repr=False, compare=False)
 
     def start(self, obs: Observation) -> None:
         """Record the first observation (after reset) without judging it."""
         self.trajectory.append([round(obs.pose.x, 2), round(obs.pose.y, 2)])
         self.final_distance_m = self._goal_distance(obs)
-        self._bind_route(obs.route.xy)
-
-    def _goal_distance(self, obs: Observation) -> float:
-        return math.hypot(obs.pose.x - self.goal_xy[0], obs.pose.y - self.goal_xy[1])
-
-    def _goal_reached(self, obs: Observation) -> bool:
-        """The simulator's own rule; the route's table is built once per route, not summed each step."""
-        xy = obs.route.xy
-        if self._route_xy is not xy:
-            self._bind_route(xy)
-        return goal_reached(obs.pose.x, obs.pose.y, xy, obs.route_index, self._left)
-
-    def _bind_route(self, xy: Any) -> None:
-        """Check that the goal is the route's end and build its table (at start, so a bad goal fails at once)."""
-        end = (float(xy[-1][0]), float(xy[-1][1]))
+        end = (float(obs.route.xy[-1][0]), float(obs.route.xy[-1][1]))
         if math.hypot(end[0] - self.goal_xy[0], end[1] - self.goal_xy[1]) > 1e-6:
             raise ValueError(
                 f"EpisodeTracker.goal_xy {self.goal_xy} is not the observed route's last "
                 f"waypoint {end}; the goal must be the route's end"
             )
-        self._route_xy, self._left = xy, route_left_table(xy)
+        self._goal = GoalCriterion(obs.route.xy)  # the worlds' own rule, its route table built once
+
+    def _goal_distance(self, obs: Observation) -> float:
+        return math.hypot(obs.pose.x - self.goal_xy[0], obs.pose.y - self.goal_xy[1])
 
     def update(self, obs: Observation) -> bool:
         """Account for one step's observation; True when the episode ends with it."""
         if self.finished:
             raise RuntimeError("EpisodeTracker.update called after the episode ended")
+        if self._goal is None:
+            raise RuntimeError("EpisodeTracker.update called before start")
         self.steps += 1
         self.time_s = self.steps * DT
         self.distance_m = float(obs.distance_driven)
@@ -138,7 +128,7 @@ class EpisodeTracker:
         self.final_distance_m = self._goal_distance(obs)
         if self.collisions:
             self.reason = collision_reason(self.collisions[0]["type"])
-        elif self._goal_reached(obs):
+        elif self._goal.update(obs.time, obs.pose.x, obs.pose.y, obs.route_index):
             self.success = True
         elif self.time_s >= self.timeout_s - 1e-9:
             self.reason = "timeout"

@@ -13,7 +13,7 @@ import pytest
 
 from yawil.data.manifest import read_manifest
 from yawil.data.reader import open_episode
-from yawil.data.schema import FrameRecord
+from yawil.data.schema import SCHEMA_VERSION, FrameRecord
 from yawil.data.synthetic import synthetic_episode, write_synthetic_dataset
 from yawil.data.writer import DatasetWriter
 
@@ -57,7 +57,7 @@ def test_manifest_counts_and_resume(tmp_path: Path) -> None:
     assert m.episode_ids() == [0, 1, 2] and m.frames == 36
     assert sum(m.by_command().values()) == 36 and sum(m.by_weather().values()) == 36
     raw = json.loads((tmp_path / "manifest.json").read_text())
-    assert raw["schema_version"] == 1 and raw["totals"]["frames"] == 36
+    assert raw["schema_version"] == SCHEMA_VERSION == 2 and raw["totals"]["frames"] == 36
     # A resumed writer sees the committed episodes and refuses to write one twice.
     config = read_manifest(tmp_path).config
     w = DatasetWriter(tmp_path, config)

@@ -19,6 +19,7 @@ COMMANDS: dict[str, str] = {
     "data": "yawil.data.cli",
     "models": "yawil.models.cli",
     "train": "yawil.train_cli",
+    "dagger": "yawil.dagger",
     "export": "yawil.export",
     "bench": "yawil.bench.cli",
     "report": "yawil.bench.report_cli",

@@ -115,6 +115,7 @@ class ExpertState:
     hazard: Hazard | None = None
     lateral_error: float = 0.0
     light_decisions: dict[int, str] = field(default_factory=dict)
+    hazards: tuple[Hazard, ...] = ()  # every stop point considered this step (labels of lead vehicle and lights)
 
 
 class _RouteCache:
@@ -308,6 +309,7 @@ class Expert:
             hazard=binding,
             lateral_error=lateral,
             light_decisions=dict(self._light_decisions),
+            hazards=tuple(hazards),
         )
         return Control(steer=steer, throttle=throttle, brake=brake).validate()
 

@@ -42,7 +42,8 @@ DEVICES = ("auto", "cpu", "cuda")
 SWITCHES = ("auto", "on", "off")
 # What may change when a run is resumed: budgets and where/how it runs, never what it learns from.
 RESUMABLE_CHANGES = frozenset(
-    {"epochs", "max_steps", "max_minutes", "device", "precision", "channels_last", "workers", "threads", "progress"}
+    {"epochs", "max_steps", "max_minutes", "device", "precision", "channels_last", "workers", "threads", "progress",
+     "keep_steps"}
 )
 
 
@@ -79,6 +80,13 @@ class TrainConfig:
     # Share of slowing-down frames (expert brake > BRAKE_LABEL at over BRAKE_MIN_SPEED) in each epoch, drawn
     # with replacement; None keeps the data's own share (about 0.07 in town01). Ours, not the paper's.
     brake_fraction: float | None = None
+    # Inertia countermeasure (CILRS, Codevilla et al. 2019): with this probability per training sample the
+    # speed input is replaced by the training mean (0 once normalised), so the net cannot copy its speed.
+    speed_dropout: float = 0.0
+    # Start from the weights and normalisation of this yawil checkpoint (fine-tuning, e.g. a DAgger round).
+    init_from: str | None = None
+    # Optimiser steps after which the checkpoint is also kept as step_NNNNNN.pt (learning curves, selection).
+    keep_steps: list[int] = field(default_factory=list)
     progress: bool = True
     augment: AugmentConfig = field(default_factory=AugmentConfig)
 
@@ -115,6 +123,11 @@ class TrainConfig:
         need(isinstance(self.progress, bool), "progress", "true or false")
         need(self.brake_fraction is None or (_is_num(self.brake_fraction) and 0.0 < self.brake_fraction < 1.0),
              "brake_fraction", "None or a number in (0, 1)")
+        need(_is_num(self.speed_dropout) and 0.0 <= self.speed_dropout <= 1.0, "speed_dropout", "a number in [0, 1]")
+        need(self.init_from is None or (isinstance(self.init_from, str) and bool(self.init_from)), "init_from",
+             "None or a checkpoint path")
+        need(isinstance(self.keep_steps, list) and all(_is_int(v) and v >= 1 for v in self.keep_steps), "keep_steps",
+             "a list of step counts >= 1")
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
@@ -331,6 +344,12 @@ def sequential_batches(n: int, batch_size: int) -> list[list[int]]:
     return [list(range(i, min(i + batch_size, n))) for i in range(0, n, batch_size)]
 
 
+def drop_speed(speed: Tensor, p: float, gen: torch.Generator) -> Tensor:
+    """Speed-input dropout: each sample's normalised speed becomes 0 (the training mean) with probability p."""
+    keep = torch.rand(speed.shape, generator=gen, device=speed.device) >= p
+    return speed * keep.to(speed.dtype)
+
+
 def step_generator(seed: int, step: int, device: torch.device) -> torch.Generator:
     """Augmentation randomness of one step, independent of everything else that happened."""
     g = torch.Generator(device=device)
@@ -537,6 +556,19 @@ def train(
         check_resumable(ckpt["train_config"], cfg, out / "last.pt")
         model.load_state_dict(ckpt["state_dict"])
         norm = Norm.from_dict(ckpt["norm"])
+    elif cfg.init_from is not None:
+        init = load_checkpoint(cfg.init_from, map_location="cpu")
+        if init["model_name"] != cfg.model:
+            raise ValueError(f"init_from {cfg.init_from}: a {init['model_name']} checkpoint, but the model is {cfg.model}")
+        if dict(init["guidance_config"]) != guidance_config:
+            raise ValueError(f"init_from {cfg.init_from}: guidance config {init['guidance_config']} differs from the "
+                             f"data's {guidance_config}")
+        try:
+            model.load_state_dict(init["state_dict"])
+        except RuntimeError as err:
+            raise ValueError(f"init_from {cfg.init_from}: weights do not fit model {cfg.model} "
+                             f"with model_args {cfg.model_args}: {str(err).splitlines()[0]}") from None
+        norm = Norm.from_dict(init["norm"])  # the inputs keep the scale the weights learned
     else:
         norm = Norm.from_arrays(*label_arrays(train_ds, kind))
     model.to(runtime.device)
@@ -612,6 +644,13 @@ def train(
         write_metrics(out, metrics)
         writer.flush()
 
+    keep_at = set(cfg.keep_steps)
+
+    def keep(step: int) -> None:
+        """The checkpoint after `step` steps, kept apart (its position resumes mid-epoch like last.pt)."""
+        if step in keep_at:
+            save_checkpoint(snapshot(), out / f"step_{step:06d}.pt")
+
     if threading.current_thread() is threading.main_thread():
         signal.signal(signal.SIGTERM, _raise_interrupt)  # a kill saves like Ctrl-C
     model.train()
@@ -634,7 +673,8 @@ def train(
             disable=not cfg.progress, unit="batch", dynamic_ncols=True,
         )  # fmt: skip
         try:
-            stop = _train_epoch(model, loader, optimizer, scaler, norm, kind, uses_command, cfg, runtime, pos, writer, bar, started)
+            stop = _train_epoch(model, loader, optimizer, scaler, norm, kind, uses_command, cfg, runtime, pos, writer, bar,
+                                started, keep)
         except KeyboardInterrupt:
             # Ctrl-C (or SIGTERM, see below): keep what was learned; --resume continues from here
             bar.close()
@@ -663,7 +703,7 @@ def _raise_interrupt(signum: int, frame: Any) -> None:
 def _train_epoch(
     model: Any, loader: Any, optimizer: torch.optim.Optimizer, scaler: torch.amp.GradScaler, norm: Norm,
     kind: str | None, uses_command: bool, cfg: TrainConfig, runtime: Runtime, pos: Position, writer: Any,
-    bar: Any, started: float,
+    bar: Any, started: float, keep: Callable[[int], None] | None = None,
 ) -> str | None:  # fmt: skip
     """Run the rest of the current epoch; return the name of the budget that stopped it, or None."""
     tick = time.perf_counter()
@@ -671,7 +711,10 @@ def _train_epoch(
         if cfg.max_steps is not None and pos.step >= cfg.max_steps:
             return "max_steps"
         b = prepare_batch(raw, norm, kind, uses_command, runtime)
-        b.image = augment_batch(b.image, cfg.augment, step_generator(cfg.seed, pos.step, runtime.device), inplace=True)
+        gen = step_generator(cfg.seed, pos.step, runtime.device)
+        b.image = augment_batch(b.image, cfg.augment, gen, inplace=True)
+        if cfg.speed_dropout > 0.0:
+            b.speed = drop_speed(b.speed, cfg.speed_dropout, gen)
         with runtime.autocast():
             loss, _, _ = compute_loss(model, b, cfg)
         optimizer.zero_grad(set_to_none=True)
@@ -689,6 +732,8 @@ def _train_epoch(
         pos.batch += 1
         pos.loss_sum += value * size
         pos.samples += size
+        if keep is not None:
+            keep(pos.step)
         bar.update(1)
         bar.set_postfix(loss=f"{value:.4f}", sps=f"{pos.samples / max(pos.seconds, 1e-9):.0f}")
         if pos.step % cfg.log_every == 0:

@@ -36,8 +36,21 @@ _OPTIONS: tuple[tuple[str, str, Any, str], ...] = (
     ("--brake-fraction", "brake_fraction", float,
      "share of slowing-down frames (expert brake > 0.1 at over 1 m/s) per epoch, drawn with replacement "
      "(default: the data's own)"),
+    ("--speed-dropout", "speed_dropout", float,
+     "probability per training sample that the speed input is replaced by its mean (inertia; default 0)"),
+    ("--init-from", "init_from", str, "start from the weights and normalisation of this yawil checkpoint (fine-tune)"),
+    ("--keep-steps", "keep_steps", lambda t: _step_list(t),
+     "comma-separated step counts whose checkpoints are kept as step_NNNNNN.pt (learning curves)"),
     ("--pretrained", "pretrained", str, "ImageNet ResNet34 state dict for the backbone ('YILRatt (pretrained)')"),
 )
+
+
+def _step_list(text: str) -> list[int]:
+    """'375,750' -> [375, 750]; argparse turns the ValueError into a one-line usage error."""
+    try:
+        return [int(v) for v in text.split(",") if v.strip()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected comma-separated step counts, e.g. 375,750, got {text!r}") from None
 
 
 def add_parser(subparsers: Any) -> argparse.ArgumentParser:

@@ -25,11 +25,11 @@ from typing import Any
 import numpy as np
 
 from yawil.data.manifest import read_manifest
-from yawil.data.schema import FrameRecord
+from yawil.data.schema import DRIVERS, LEAD_RANGE, LIGHT_RANGE, SPEED_REASONS, FrameRecord
 from yawil.data.writer import DatasetWriter, EpisodeWriter
-from yawil.expert import Expert, ExpertConfig
+from yawil.expert import Expert, ExpertConfig, ExpertState
 from yawil.guidance import GuidanceConfig, compute_guidance
-from yawil.sim.types import EventKind, RoadOption, Scenario, World
+from yawil.sim.types import Control, EventKind, Observation, RoadOption, Route, Scenario, World
 from yawil.sim.weather import get_weather
 
 EPISODE_STRIDE = 100_000  # episode id = seed * EPISODE_STRIDE + index
@@ -101,6 +101,95 @@ class CollectConfig:
 
 
 @dataclass(frozen=True)
+class OnPolicy:
+    """How a learner shares the wheel with the expert in a DAgger round (docs/training.md, "DAgger").
+
+    The expert labels every frame whoever drives. It drives a segment itself with probability `beta` (one
+    draw per `segment_seconds`, or per episode when 0), and takes the wheel from the learner for
+    `takeover_seconds` when the learner strays `takeover_lateral` m from the route, would need more than
+    `takeover_decel` m/s^2 to stop for the stop point the expert brakes for, or stands `takeover_stall` s
+    while the expert would drive: these recovery frames are what behaviour cloning never shows.
+    """
+
+    round: int = 1
+    beta: float = 0.0
+    segment_seconds: float = 0.0
+    takeover_lateral: float = 2.0
+    takeover_decel: float = 4.0
+    takeover_stall: float = 4.0
+    takeover_seconds: float = 3.0
+
+    def __post_init__(self) -> None:
+        if isinstance(self.round, bool) or not isinstance(self.round, int) or not 1 <= self.round <= 32767:
+            raise ValueError(f"OnPolicy.round must be an int in [1, 32767], got {self.round!r}")
+        if not 0.0 <= self.beta <= 1.0:
+            raise ValueError(f"OnPolicy.beta must be in [0, 1], got {self.beta!r}")
+        for name in ("segment_seconds", "takeover_lateral", "takeover_decel", "takeover_stall", "takeover_seconds"):
+            v = getattr(self, name)
+            if not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
+                raise ValueError(f"OnPolicy.{name} must be a finite number >= 0, got {v!r}")
+
+
+class Driver:
+    """The duck type of a learner: what `yawil.agent.Agent` offers."""
+
+    def reset(self) -> None: ...
+
+    def act(self, obs: Observation) -> Control: ...
+
+
+def expert_labels(state: ExpertState) -> dict[str, Any]:
+    """The schema-2 privileged labels of one frame from the expert's decision (docs/dataset.md)."""
+    lead = min((h for h in state.hazards if h.reason == "vehicle"), key=lambda h: h.distance, default=None)
+    light = any(h.reason in ("red_light", "yellow_light") and h.distance < LIGHT_RANGE for h in state.hazards)
+    near = lead is not None and lead.distance < LEAD_RANGE
+    return {
+        "target_speed": max(float(state.target_speed), 0.0),
+        "speed_reason": SPEED_REASONS.index(state.reason) if state.reason in SPEED_REASONS else -1,
+        "lead_distance": max(float(lead.distance), 0.0) if near and lead is not None else LEAD_RANGE,
+        "lead_speed": max(float(lead.speed), 0.0) if near and lead is not None else 0.0,
+        "light_ahead": int(light),
+    }
+
+
+class _Wheel:
+    """Who drives each frame of an on-policy episode: the schedule (beta) and the takeovers."""
+
+    def __init__(self, onpolicy: OnPolicy, rng: np.random.Generator, dt: float) -> None:
+        self.p, self.rng, self.dt = onpolicy, rng, dt
+        self.segment = max(1, round(onpolicy.segment_seconds / dt)) if onpolicy.segment_seconds > 0 else 0
+        self.expert_segment = False
+        self.takeover_left = 0
+        self.stall = 0
+        self.takeovers = 0
+
+    def driver(self, frame: int, state: ExpertState, speed: float) -> int:
+        """DRIVERS index for this frame (one draw per segment start, whatever happens: seeded alignment)."""
+        p = self.p
+        if frame == 0 or (self.segment and frame % self.segment == 0):
+            self.expert_segment = bool(self.rng.random() < p.beta)
+        self.stall = self.stall + 1 if (speed < 0.1 and state.target_speed > 1.0) else 0
+        if self.takeover_left == 0 and not self.expert_segment and self._danger(state, speed):
+            self.takeover_left = max(1, round(p.takeover_seconds / self.dt))
+            self.takeovers += 1
+        if self.takeover_left > 0:
+            self.takeover_left -= 1
+            self.stall = 0
+            return DRIVERS.index("takeover")
+        return DRIVERS.index("expert") if self.expert_segment else DRIVERS.index("learner")
+
+    def _danger(self, state: ExpertState, speed: float) -> bool:
+        p = self.p
+        if abs(state.lateral_error) > p.takeover_lateral or self.stall * self.dt > p.takeover_stall:
+            return True
+        h = state.hazard
+        if h is None or speed <= h.speed:
+            return False
+        need = (speed * speed - h.speed * h.speed) / (2.0 * h.distance) if h.distance > 0.05 else math.inf
+        return need > p.takeover_decel
+
+
+@dataclass(frozen=True)
 class EpisodePlan:
     """Everything that defines one episode, derived from (seed, index) alone."""
 
@@ -121,14 +210,17 @@ def episode_id(seed: int, index: int) -> int:
     return seed * EPISODE_STRIDE + index
 
 
-def plan_episode(cfg: CollectConfig, seed: int, index: int) -> EpisodePlan:
-    """Weathers cycle over indices (balanced, as the paper's data); traffic and world seed are drawn."""
+def plan_episode(cfg: CollectConfig, seed: int, index: int, min_world_seed: int = 0) -> EpisodePlan:
+    """Weathers cycle over indices (balanced, as the paper's data); traffic and world seed are drawn.
+
+    `min_world_seed` keeps the world seeds above a range (DAgger keeps clear of the benchmark's).
+    """
     rng = np.random.default_rng([seed, index, 0])
     return EpisodePlan(
         episode_id=episode_id(seed, index),
         index=index,
         seed=seed,
-        world_seed=int(rng.integers(0, 2**31 - 1)),
+        world_seed=int(rng.integers(min_world_seed, 2**31 - 1)),
         weather=cfg.weathers[index % len(cfg.weathers)],
         vehicles=int(rng.integers(cfg.vehicles[0], cfg.vehicles[1] + 1)),
         pedestrians=int(rng.integers(cfg.pedestrians[0], cfg.pedestrians[1] + 1)),
@@ -170,6 +262,8 @@ class EpisodeResult:
     noise_frames: int = 0
     seconds: float = 0.0
     collisions: list[dict[str, Any]] = field(default_factory=list)
+    drivers: dict[str, int] = field(default_factory=dict)  # frames run per DRIVERS name
+    takeovers: int = 0
 
 
 class _Keeper:
@@ -231,12 +325,19 @@ def run_episode(
     guidance: GuidanceConfig = GuidanceConfig(),
     expert_config: ExpertConfig | None = None,
     on_frame: Callable[[int], None] | None = None,
+    learner: Driver | None = None,
+    onpolicy: OnPolicy | None = None,
+    reject_route: Callable[[Route], bool] | None = None,
 ) -> EpisodeResult:
-    """Drive one episode with the expert and store it (when `writer` is given). Interrupts discard it.
+    """Drive one episode with the expert (or a `learner` sharing the wheel by `onpolicy`) and store it (when
+    `writer` is given), every frame labelled with the expert's control. Interrupts discard it.
 
     `on_frame(n)` is told of frames kept as they are kept (for a progress bar; a trimmed collision takes
-    some back, which the caller corrects from the result).
+    some back, which the caller corrects from the result). `reject_route(route)` True draws the world again
+    with the next seed (DAgger keeps off the benchmark's routes).
     """
+    if (learner is None) != (onpolicy is None):
+        raise ValueError("run_episode: give both learner and onpolicy, or neither")
     if writer is not None and not cfg.camera:
         raise ValueError("CollectConfig.camera is False but a dataset needs images: enable the camera")
     t0 = time.perf_counter()
@@ -245,14 +346,29 @@ def run_episode(
     keep_rng = np.random.default_rng([plan.seed, plan.index, 2])
     scenario = Scenario(town=cfg.town, weather=plan.weather, vehicles=plan.vehicles, pedestrians=plan.pedestrians,
                         camera=cfg.camera, min_route_length=cfg.min_route_length)
-    obs = world.reset(scenario, plan.world_seed)
+    world_seed = plan.world_seed
+    obs = world.reset(scenario, world_seed)
+    tries = 0
+    while reject_route is not None and reject_route(obs.route):
+        tries += 1
+        if tries > 100:
+            raise ValueError(f"episode {plan.episode_id}: 100 drawn routes in a row were rejected (from world seed "
+                             f"{plan.world_seed}); the town has no route left to drive")
+        world_seed += 1
+        obs = world.reset(scenario, world_seed)
     route = obs.route
     s_route, curv = _route_curvature(np.asarray(route.xy, dtype=np.float64))
     keeper = _Keeper(cfg, curv, s_route, np.asarray(route.options), keep_rng)
     expert = Expert(expert_config)
     result = EpisodeResult(plan.episode_id, plan.index, "timeout")
-    meta = {"index": plan.index, "world_seed": plan.world_seed, "vehicles": plan.vehicles,
+    meta = {"index": plan.index, "world_seed": world_seed, "vehicles": plan.vehicles,
             "pedestrians": plan.pedestrians, "route_length": float(route.length), "min_route_length": cfg.min_route_length}
+    wheel = None
+    if learner is not None and onpolicy is not None:
+        learner.reset()
+        wheel = _Wheel(onpolicy, np.random.default_rng([plan.seed, plan.index, 3]), 0.1)
+        meta["round"] = onpolicy.round
+    round_index = onpolicy.round if onpolicy is not None else 0
     ep: EpisodeWriter | None = None
     if writer is not None:
         ep = writer.begin_episode(plan.episode_id, cfg.town, plan.weather, plan.seed, meta)
@@ -265,6 +381,14 @@ def run_episode(
             control = expert.act(obs)
             offset = noise()
             applied = control
+            driver = 0
+            if wheel is not None and learner is not None:
+                own = learner.act(obs)  # every frame, so the learner's memory (guidance hint) stays current
+                driver = wheel.driver(result.frames_run, expert.state, max(float(obs.speed), 0.0))
+                if driver == DRIVERS.index("learner"):
+                    applied, offset = own, 0.0
+            name = DRIVERS[driver]
+            result.drivers[name] = result.drivers.get(name, 0) + 1
             if offset != 0.0:
                 applied = replace(control, steer=float(np.clip(control.steer + offset, -1.0, 1.0)))
                 result.noise_frames += 1
@@ -272,12 +396,13 @@ def run_episode(
                                        guidance, hint_index=hint)
             s_here = float(s_route[min(int(obs.route_index), len(s_route) - 1)])
             command = int(RoadOption.LANEFOLLOW) if int(obs.command) == int(RoadOption.VOID) else int(obs.command)
-            if keeper.keep(obs.speed, s_here, command, offset != 0.0, control.steer) and obs.image is not None:
+            if keeper.keep(obs.speed, s_here, command, offset != 0.0 or driver != 0, control.steer) and obs.image is not None:
                 rec = FrameRecord(
                     image=obs.image, steer=control.steer, throttle=control.throttle, brake=control.brake,
                     speed=max(float(obs.speed), 0.0), command=command, guidance_yaw=g.yaw, guidance_xy=g.xy,
                     guidance_sim_yaw=g.sim_yaw, pose=(obs.pose.x, obs.pose.y, obs.pose.yaw), frame=int(obs.frame),
                     noise=offset != 0.0, lane_follow_turn=keeper.lane_follow_turn(s_here, command),
+                    driver=driver, round=round_index, **expert_labels(expert.state),
                 )
                 delay.append(rec)
                 result.frames_kept += 1
@@ -326,6 +451,7 @@ def run_episode(
             ep.discard()
         raise
     result.seconds = time.perf_counter() - t0
+    result.takeovers = wheel.takeovers if wheel is not None else 0
     return result
 
 
@@ -338,6 +464,8 @@ class CollectSummary:
     episodes_skipped: int = 0  # already in the dataset (resume)
     episodes_discarded: int = 0
     outcomes: dict[str, int] = field(default_factory=dict)
+    drivers: dict[str, int] = field(default_factory=dict)  # frames run per driver (on-policy rounds)
+    takeovers: int = 0
     dataset_frames: int = 0
     seconds: float = 0.0
 
@@ -346,8 +474,19 @@ class CollectSummary:
         return self.frames_written / self.seconds if self.seconds > 0 else 0.0
 
 
-def dataset_config(cfg: CollectConfig, guidance: GuidanceConfig, expert_config: ExpertConfig) -> dict[str, Any]:
-    return {"guidance": guidance.to_dict(), "collector": cfg.to_dict(), "expert": expert_config.to_dict()}
+def dataset_config(cfg: CollectConfig, guidance: GuidanceConfig, expert_config: ExpertConfig,
+                   learner: Learner | None = None) -> dict[str, Any]:
+    d: dict[str, Any] = {"guidance": guidance.to_dict(), "collector": cfg.to_dict(), "expert": expert_config.to_dict()}
+    if learner is not None:
+        d["learner"] = {"checkpoint": learner.identity, "onpolicy": asdict(learner.onpolicy),
+                        "min_world_seed": learner.min_world_seed}
+    return d
+
+
+def _learner_args(spec: Learner | None, driver: Driver | None) -> dict[str, Any]:
+    if spec is None:
+        return {}
+    return {"learner": driver, "onpolicy": spec.onpolicy, "reject_route": spec.reject_route}
 
 
 WorldFactory = Callable[[], World]
@@ -365,15 +504,33 @@ def embedded_world() -> World:
 _WORKER: dict[str, Any] = {}
 
 
+@dataclass(frozen=True)
+class Learner:
+    """What an on-policy collection needs beyond the expert's: who shares the wheel, and how.
+
+    `factory` makes the learner in each process (picklable: a module-level function or a partial of one);
+    `reject_route` (picklable too) turns down routes that must not be driven; world seeds start at
+    `min_world_seed`. The dataset config records `identity` (the checkpoint) and `onpolicy`.
+    """
+
+    factory: Callable[[], Driver]
+    onpolicy: OnPolicy
+    identity: str
+    min_world_seed: int = 0
+    reject_route: Callable[[Route], bool] | None = None
+
+
 def _worker_init(out: str, cfg: CollectConfig, guidance: GuidanceConfig, expert_config: ExpertConfig,
-                 progress: Any, world_factory: WorldFactory) -> None:
-    _WORKER.update(cfg=cfg, guidance=guidance, expert=expert_config, progress=progress,
-                   writer=DatasetWriter(out, dataset_config(cfg, guidance, expert_config)), world=world_factory())
+                 progress: Any, world_factory: WorldFactory, learner: Learner | None = None) -> None:
+    _WORKER.update(cfg=cfg, guidance=guidance, expert=expert_config, progress=progress, learner_spec=learner,
+                   writer=DatasetWriter(out, dataset_config(cfg, guidance, expert_config, learner)),
+                   world=world_factory(), learner=learner.factory() if learner is not None else None)
 
 
 def _worker_episode(seed: int, index: int) -> EpisodeResult:
     w = _WORKER
-    plan = plan_episode(w["cfg"], seed, index)
+    spec: Learner | None = w["learner_spec"]
+    plan = plan_episode(w["cfg"], seed, index, spec.min_world_seed if spec is not None else 0)
     if w["writer"].has_episode(plan.episode_id):
         return EpisodeResult(plan.episode_id, index, "skipped")
     pending = [0]
@@ -384,7 +541,8 @@ def _worker_episode(seed: int, index: int) -> EpisodeResult:
             w["progress"].put((plan.episode_id, pending[0]))
             pending[0] = 0
 
-    result = run_episode(w["world"], plan, w["cfg"], w["writer"], w["guidance"], w["expert"], on_frame=tick)
+    result = run_episode(w["world"], plan, w["cfg"], w["writer"], w["guidance"], w["expert"], on_frame=tick,
+                         **_learner_args(spec, w["learner"]))
     if pending[0]:
         w["progress"].put((plan.episode_id, pending[0]))
     return result
@@ -403,6 +561,8 @@ def collect(
     expert_config: ExpertConfig | None = None,
     progress: bool = True,
     world_factory: WorldFactory = embedded_world,
+    learner: Learner | None = None,
+    desc: str = "collect",
     **overrides: Any,
 ) -> CollectSummary:
     """Collect expert episodes into the dataset at `out` until it holds `frames` frames (or `episodes` done).
@@ -410,7 +570,7 @@ def collect(
     `weathers` is a set name ("train", "test", "all") or names. `config` fields can also be given as keyword
     overrides (e.g. vehicles=(30, 30)). Resumable: run it again and it continues where it stopped.
     `world_factory` makes each process's simulator; with workers > 1 it must be picklable (a module-level
-    function), as spawned processes import it.
+    function), as spawned processes import it. `learner` makes it an on-policy (DAgger) collection.
     """
     from yawil.sim.weather import weather_set
 
@@ -428,7 +588,7 @@ def collect(
     ecfg = expert_config or ExpertConfig()
     out = str(out)
     t0 = time.perf_counter()
-    writer = DatasetWriter(out, dataset_config(cfg, gcfg, ecfg))  # creates, or checks the config on resume
+    writer = DatasetWriter(out, dataset_config(cfg, gcfg, ecfg, learner))  # creates, or checks the config on resume
     manifest = read_manifest(out)
     done = set(manifest.episode_ids())
     summary = CollectSummary(out=out, dataset_frames=manifest.frames)
@@ -453,27 +613,32 @@ def collect(
         else:
             summary.episodes_written += 1
             summary.frames_written += r.frames_kept
+            summary.takeovers += r.takeovers
+            for name, n in r.drivers.items():
+                summary.drivers[name] = summary.drivers.get(name, 0) + n
             summary.dataset_frames += r.frames_kept
 
-    bar = _Progress(frames, summary.dataset_frames) if progress else None
+    bar = _Progress(frames, summary.dataset_frames, desc) if progress else None
     indices = todo()
     try:
         if workers == 1:
             world = world_factory()
+            driver = learner.factory() if learner is not None else None
             try:
                 for i in indices:
                     if not budget_left(0, 0.0):
                         break
-                    plan = plan_episode(cfg, seed, i)
+                    plan = plan_episode(cfg, seed, i, learner.min_world_seed if learner is not None else 0)
                     tick = None if bar is None else (lambda n, ep=plan.episode_id: bar.frame(ep, n))
-                    r = run_episode(world, plan, cfg, writer, gcfg, ecfg, on_frame=tick)
+                    r = run_episode(world, plan, cfg, writer, gcfg, ecfg, on_frame=tick, **_learner_args(learner, driver))
                     account(r)
                     if bar is not None:
                         bar.episode(r, summary)
             finally:
                 world.close()
         else:
-            _run_pool(out, cfg, gcfg, ecfg, seed, workers, indices, budget_left, account, bar, summary, world_factory)
+            _run_pool(out, cfg, gcfg, ecfg, seed, workers, indices, budget_left, account, bar, summary, world_factory,
+                      learner)
     finally:
         if bar is not None:
             bar.close()
@@ -484,7 +649,8 @@ def collect(
 
 def _run_pool(out: str, cfg: CollectConfig, gcfg: GuidanceConfig, ecfg: ExpertConfig, seed: int, workers: int,
               indices: Iterator[int], budget_left: Callable[[int, float], bool], account: Callable[[EpisodeResult], None],
-              bar: _Progress | None, summary: CollectSummary, world_factory: WorldFactory) -> None:
+              bar: _Progress | None, summary: CollectSummary, world_factory: WorldFactory,
+              learner: Learner | None = None) -> None:
     """N spawn-context processes, each with its own world and writer; at most N episodes in flight.
 
     Any exception (a worker's, or Ctrl-C) terminates the workers at once: their episodes in progress are
@@ -495,7 +661,8 @@ def _run_pool(out: str, cfg: CollectConfig, gcfg: GuidanceConfig, ecfg: ExpertCo
     ctx = mp.get_context("spawn")
     progress_q: Any = ctx.Queue() if bar is not None else _NullQueue()
     kept: list[int] = []
-    pool = ctx.Pool(workers, initializer=_worker_init, initargs=(out, cfg, gcfg, ecfg, progress_q, world_factory))
+    pool = ctx.Pool(workers, initializer=_worker_init,
+                    initargs=(out, cfg, gcfg, ecfg, progress_q, world_factory, learner))
     running: dict[int, Any] = {}  # index -> AsyncResult
     exhausted = False
     try:
@@ -536,11 +703,11 @@ class _Progress:
     """A tqdm bar of stored frames: live counts from the episodes in progress, corrected at each episode's end
     (a trimmed collision takes frames back)."""
 
-    def __init__(self, frames: int | None, have: int) -> None:
+    def __init__(self, frames: int | None, have: int, desc: str = "collect") -> None:
         from tqdm import tqdm
 
         self.bar = tqdm(total=frames, initial=min(have, frames) if frames else have, unit="frame", unit_scale=True,
-                        desc="collect", dynamic_ncols=True, smoothing=0.05)
+                        desc=desc, dynamic_ncols=True, smoothing=0.05)
         self.live: dict[int, int] = {}
 
     def frame(self, episode: int, n: int) -> None:
@@ -576,7 +743,10 @@ __all__ = [
     "CollectSummary",
     "EpisodePlan",
     "EpisodeResult",
+    "Learner",
+    "OnPolicy",
     "SteeringNoise",
+    "expert_labels",
     "collect",
     "collect_paths",
     "episode_id",

@@ -18,7 +18,7 @@ from dataclasses import asdict, dataclass, field
 from pathlib import Path
 from typing import Any
 
-from yawil.data.schema import DATASET_FORMAT, SCHEMA_VERSION
+from yawil.data.schema import DATASET_FORMAT, READABLE_VERSIONS, SCHEMA_VERSION
 
 MANIFEST_NAME = "manifest.json"
 LOCK_NAME = ".manifest.lock"
@@ -130,8 +130,8 @@ def read_manifest(root: str | os.PathLike[str]) -> Manifest:
     if not isinstance(d, dict) or d.get("format") != DATASET_FORMAT:
         raise ValueError(f"{path}: 'format' must be {DATASET_FORMAT!r}, got {d.get('format') if isinstance(d, dict) else d!r}")
     version = d.get("schema_version")
-    if version != SCHEMA_VERSION:
-        raise ValueError(f"{path}: schema_version {version!r} is not supported (this yawil reads {SCHEMA_VERSION})")
+    if version not in READABLE_VERSIONS or isinstance(version, bool):
+        raise ValueError(f"{path}: schema_version {version!r} is not supported (this yawil reads {list(READABLE_VERSIONS)})")
     if not isinstance(d.get("config"), dict) or not isinstance(d.get("episodes"), list):
         raise ValueError(f"{path}: 'config' must be an object and 'episodes' a list")
     episodes = [EpisodeEntry.from_dict(e, str(path)) for e in d["episodes"]]

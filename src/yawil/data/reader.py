@@ -16,9 +16,11 @@ from yawil.data.schema import (
     EPISODE_FORMAT,
     IMAGE_SHAPE,
     LABEL_FIELDS,
+    READABLE_VERSIONS,
     REQUIRED_ATTRS,
-    SCHEMA_VERSION,
+    V2_FIELDS,
     FrameRecord,
+    field_dtype,
 )
 
 
@@ -50,8 +52,8 @@ class EpisodeReader:
             raise ValueError(f"{self.path}: attribute 'format' is {raw['format']!r}, expected {EPISODE_FORMAT!r}")
         version = raw["schema_version"]
         version = version.item() if isinstance(version, np.generic) else version
-        if version != SCHEMA_VERSION:
-            raise ValueError(f"{self.path}: schema_version {version!r} is not supported (this yawil reads {SCHEMA_VERSION})")
+        if version not in READABLE_VERSIONS or isinstance(version, bool):
+            raise ValueError(f"{self.path}: schema_version {version!r} is not supported (this yawil reads {list(READABLE_VERSIONS)})")
         out: dict[str, Any] = {}
         for key in REQUIRED_ATTRS:
             v = raw[key]
@@ -65,12 +67,19 @@ class EpisodeReader:
         out["route_length"] = None if math.isnan(rl) else rl
         return out
 
+    @property
+    def stored_fields(self) -> tuple[str, ...]:
+        """The fields this file's schema version holds (a schema-1 file lacks V2_FIELDS)."""
+        if int(self.attrs["schema_version"]) >= 2:
+            return ALL_FIELDS
+        return tuple(f for f in ALL_FIELDS if f not in V2_FIELDS)
+
     def _check_datasets(self) -> None:
-        missing = [f for f in ALL_FIELDS if f not in self._h5]
+        missing = [f for f in self.stored_fields if f not in self._h5]
         if missing:
             raise ValueError(f"{self.path}: missing dataset(s) {missing}")
         n = int(self.attrs["frames"])
-        for name in ALL_FIELDS:
+        for name in self.stored_fields:
             rows = self._h5[name].shape[0]
             if rows != n:
                 raise ValueError(f"{self.path}: dataset {name!r} has {rows} rows, attribute 'frames' says {n}")
@@ -89,8 +98,11 @@ class EpisodeReader:
         return int(self.attrs["frames"])
 
     def labels(self) -> dict[str, np.ndarray]:
-        """Every label column of the episode (all but images), read at once."""
-        return {name: self._h5[name][:] for name in LABEL_FIELDS}
+        """Every label column of the episode (all but images), read at once; a schema-1 file's missing
+        columns come filled with V2_FIELDS' "unknown" values."""
+        n = len(self)
+        return {name: self._h5[name][:] if name in self._h5 or name not in V2_FIELDS
+                else np.full(n, V2_FIELDS[name], dtype=field_dtype(name)) for name in LABEL_FIELDS}
 
     def image(self, i: int) -> np.ndarray:
         return np.asarray(self._h5["image"][i])
@@ -119,6 +131,8 @@ class EpisodeReader:
             frame=int(h["frame"][i]),
             noise=bool(h["noise"][i]),
             lane_follow_turn=bool(h["lane_follow_turn"][i]),
+            **{name: (float if field_dtype(name).kind == "f" else int)(h[name][i] if name in h else default)
+               for name, default in V2_FIELDS.items()},
         )
 
     def close(self) -> None:

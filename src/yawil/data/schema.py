@@ -1,4 +1,4 @@
-"""The record of one frame and the on-disk layout of an episode file (schema version 1).
+"""The record of one frame and the on-disk layout of an episode file (schema version 2; version 1 still reads).
 
 Everything that reads or writes a yawil dataset agrees through this module: field names, dtypes, per-frame
 shapes and valid ranges. The validation here is shared by the writer (refuse bad data before it reaches
@@ -15,7 +15,8 @@ import numpy as np
 
 from yawil.sim.types import RoadOption
 
-SCHEMA_VERSION = 1
+SCHEMA_VERSION = 2
+READABLE_VERSIONS: tuple[int, ...] = (1, 2)
 EPISODE_FORMAT = "yawil-episode"
 DATASET_FORMAT = "yawil-dataset"
 IMAGE_SHAPE: tuple[int, int, int] = (88, 200, 3)  # H, W, C; RGB uint8
@@ -39,7 +40,28 @@ SCALAR_FIELDS: dict[str, str] = {
     "frame": "int64",
     "noise": "uint8",  # 0/1, stored as uint8 so any HDF5 tool reads it (h5py's bool is an enum)
     "lane_follow_turn": "uint8",
+    # schema 2: who drove, and what the expert knew (docs/dataset.md)
+    "driver": "uint8",  # DRIVERS index: the expert's own episode, the learner (DAgger), the expert taking over
+    "round": "int16",  # DAgger round (0: expert data)
+    "target_speed": "float32",  # m/s the expert aimed for; NaN: unknown (schema 1)
+    "speed_reason": "int8",  # SPEED_REASONS index of what set it; -1: unknown
+    "lead_distance": "float32",  # m from the front bumper to the vehicle followed, LEAD_RANGE when none; NaN unknown
+    "lead_speed": "float32",  # its speed along the route (m/s), 0 when none; NaN unknown
+    "light_ahead": "int8",  # 1: a red or yellow stop line within LIGHT_RANGE m; 0: none; -1: unknown
 }
+# Fields a schema-1 file lacks, and the value a reader fills in for them ("unknown" where the truth is).
+V2_FIELDS: dict[str, float] = {
+    "driver": 0, "round": 0, "target_speed": math.nan, "speed_reason": -1,
+    "lead_distance": math.nan, "lead_speed": math.nan, "light_ahead": -1,
+}
+DRIVERS: tuple[str, ...] = ("expert", "learner", "takeover")
+SPEED_REASONS: tuple[str, ...] = (
+    "cruise", "curve", "red_light", "yellow_light", "vehicle", "pedestrian", "junction", "goal",
+)
+LEAD_RANGE = 50.0  # m: a vehicle followed farther than this counts as none
+LIGHT_RANGE = 30.0  # m
+# Float fields where NaN is allowed and means "unknown" (older files, or a frame made without an expert).
+MAYBE_UNKNOWN: frozenset[str] = frozenset({"target_speed", "lead_distance", "lead_speed"})
 VECTOR_FIELDS: dict[str, tuple[str, int]] = {  # name -> (dtype, multiple of K)
     "guidance_yaw": ("float32", 1),
     "guidance_xy": ("float32", 2),
@@ -108,6 +130,13 @@ class FrameRecord:
     frame: int  # index within the episode; strictly increasing, gaps allowed
     noise: bool = False  # a steering perturbation was applied to the car at this frame
     lane_follow_turn: bool = False  # on a lane-follow curve (square subsets)
+    driver: int = 0  # DRIVERS index
+    round: int = 0
+    target_speed: float = math.nan
+    speed_reason: int = -1
+    lead_distance: float = math.nan
+    lead_speed: float = math.nan
+    light_ahead: int = -1
 
     @property
     def k(self) -> int:
@@ -144,6 +173,16 @@ class FrameRecord:
             raise ValueError(f"{where}: pose must be 3 finite numbers (x, y, yaw), got {self.pose!r}")
         if isinstance(self.frame, bool) or int(self.frame) != self.frame or int(self.frame) < 0:
             raise ValueError(f"{where}: frame must be an int >= 0, got {self.frame!r}")
+        for name, lo, hi in (("driver", 0, len(DRIVERS) - 1), ("round", 0, 32767),
+                             ("speed_reason", -1, len(SPEED_REASONS) - 1), ("light_ahead", -1, 1)):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, np.integer)) or not lo <= int(v) <= hi:
+                raise ValueError(f"{where}: {name} must be an int in [{lo}, {hi}], got {v!r}")
+        for name in sorted(MAYBE_UNKNOWN):
+            v = getattr(self, name)
+            if not (isinstance(v, (int, float, np.floating)) and not isinstance(v, bool)) or (
+                    not math.isnan(float(v)) and not 0.0 <= float(v) < math.inf):
+                raise ValueError(f"{where}: {name} must be a number >= 0 or NaN (unknown), got {v!r}")
         return self
 
 
@@ -179,7 +218,7 @@ def label_problems(labels: dict[str, np.ndarray], k: int) -> list[str]:
         elif arr.shape[0] != n:
             problems.append(f"{name}: {arr.shape[0]} rows, other fields have {n}")
         if arr.dtype.kind == "f":
-            bad = ~np.isfinite(arr)
+            bad = np.isinf(arr) if name in MAYBE_UNKNOWN else ~np.isfinite(arr)
             if bad.any():
                 rows = np.nonzero(bad.reshape(arr.shape[0], -1).any(axis=1))[0]
                 problems.append(f"{name}: NaN or inf at {len(rows)} row(s), first row {int(rows[0])}")
@@ -199,6 +238,15 @@ def label_problems(labels: dict[str, np.ndarray], k: int) -> list[str]:
     for name in ("noise", "lane_follow_turn"):
         if (labels[name] > 1).any():
             problems.append(f"{name}: values other than 0/1")
+    for name, lo, hi in (("driver", 0, len(DRIVERS) - 1), ("round", 0, 32767),
+                         ("speed_reason", -1, len(SPEED_REASONS) - 1), ("light_ahead", -1, 1)):
+        arr = labels[name]
+        out = (arr < lo) | (arr > hi)
+        if out.any():
+            problems.append(f"{name}: {int(out.sum())} value(s) out of [{lo}, {hi}], first {int(arr[np.nonzero(out)[0][0]])}")
+    for name in sorted(MAYBE_UNKNOWN):
+        if (labels[name] < 0).any():
+            problems.append(f"{name}: negative values (expected >= 0, or NaN for unknown)")
     frames = labels["frame"]
     if frames.size and (frames[0] < 0 or (np.diff(frames) <= 0).any()):
         problems.append("frame: indices must be >= 0 and strictly increasing")

@@ -36,6 +36,7 @@ from yawil.data.schema import (
     EPISODE_FORMAT,
     IMAGE_SHAPE,
     LABEL_FIELDS,
+    SCALAR_FIELDS,
     SCHEMA_VERSION,
     FrameRecord,
     field_dtype,
@@ -90,6 +91,11 @@ class DatasetWriter:
         self._remove_stale_tmp()
 
     def _check_config(self, manifest: Manifest) -> None:
+        if manifest.schema_version != SCHEMA_VERSION:
+            raise ValueError(
+                f"{self.root / 'manifest.json'}: a schema-{manifest.schema_version} dataset; this yawil writes schema "
+                f"{SCHEMA_VERSION} and does not mix the two in one folder: collect into a new folder (the old one still reads)"
+            )
         diff = config_diff(manifest.config, self.config)
         if diff:
             raise ValueError(
@@ -209,7 +215,7 @@ class EpisodeWriter:
         self._last_frame = int(rec.frame)
         b = self._buf
         b["image"].append(rec.image.copy())  # the caller may reuse its buffer
-        for name in ("steer", "throttle", "brake", "speed", "command", "frame", "noise", "lane_follow_turn"):
+        for name in SCALAR_FIELDS:
             b[name].append(getattr(rec, name))
         for name in ("guidance_yaw", "guidance_xy", "guidance_sim_yaw", "pose"):
             b[name].append(np.array(getattr(rec, name), dtype=field_dtype(name)))

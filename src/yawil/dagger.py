@@ -1,0 +1,335 @@
+"""`yawil dagger`: on-policy data aggregation with the privileged expert (DAgger; docs/training.md, "DAgger").
+
+    round 0: expert data (`yawil collect`) and a policy trained on it (or a checkpoint given with --round0)
+    round r: the round r-1 policy drives random training-town routes with the expert beside it; every frame
+             is stored with the expert's control as its label (driver, round and the expert's privileged labels
+             per frame, dataset schema 2), the expert taking the wheel when the learner strays, stalls or would
+             need to brake harder than it can; then training goes on over the aggregate (fine-tuned from the
+             last checkpoint, or retrained from scratch), and the next round.
+
+Why: behaviour cloning only ever sees the expert's states, so the learner's own mistakes lead it where it has
+no labels (Ross et al. 2011); Learning by Cheating measured NoCrash dense town01 27.7 -> 70.0 % with it. Our
+expert labels any state for ~0.5 ms, so every visited frame is a label.
+
+Every stage is resumable at any kill: collection per episode (the manifest), training from `last.pt`, and a
+stage marker per finished stage under OUT/stages. The benchmark's world seeds and routes are never driven
+(`BENCH_WORLD_SEED_LIMIT`, `BenchRoutes`).
+"""
+
+from __future__ import annotations
+
+import argparse
+import functools
+import json
+import math
+import time
+from collections.abc import Callable, Sequence
+from dataclasses import asdict, dataclass, field, fields
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from yawil.stages import run_stage
+
+TRAIN_MODES = ("finetune", "scratch")
+# Benchmark episodes use world seed 1000 * seed + route id (yawil.bench.suites.Episode.world_seed), far below this.
+BENCH_WORLD_SEED_LIMIT = 1_000_000
+ROUND_SEED_STRIDE = 1000  # round r's episodes are collected with seed + 1000 * r: ids unique across the aggregate
+SAME_ROUTE_M = 10.0  # a drawn route whose start and goal both lie this close to a benchmark route's is that route
+
+
+@dataclass(frozen=True)
+class DaggerConfig:
+    """One DAgger run. Budgets in frames and optimiser steps only, so the result does not depend on the machine."""
+
+    model: str = "yilratt"
+    town: str = "town01"
+    seed: int = 0
+    expert_frames: int = 20_000
+    rounds: int = 2
+    round_frames: int = 6_000  # on-policy frames stored per round
+    episode_frames: int = 0  # > 0: end every episode after this many steps (small runs and tests)
+    round0_steps: int = 750  # steps of the round-0 policy (or the steps of the --round0 checkpoint)
+    round_steps: int = 375  # steps per round: fine-tune steps, or the extra steps of a retraining from scratch
+    train_mode: str = "finetune"
+    beta: tuple[float, ...] = (0.0,)  # probability that the expert drives a segment, per round (the last repeats)
+    segment_seconds: float = 10.0
+    takeover_lateral: float = 2.0
+    takeover_decel: float = 4.0
+    takeover_stall: float = 4.0
+    takeover_seconds: float = 3.0
+    batch_size: int = 64
+    lr: float = 1e-3
+    workers: int = 2  # collection processes
+    threads: int = 0  # torch threads of training (0: all cores)
+    train_args: dict[str, Any] = field(default_factory=dict)  # further TrainConfig settings (speed_dropout, ...)
+    round0: str | None = None  # an existing round-0 checkpoint (then expert_data must be its data)
+    expert_data: str | None = None  # an existing expert dataset instead of collecting one
+
+    def __post_init__(self) -> None:
+        def need(ok: bool, name: str, want: str) -> None:
+            if not ok:
+                raise ValueError(f"dagger: {name}={getattr(self, name)!r}, expected {want}")
+
+        for name in ("expert_frames", "round_frames", "round_steps", "batch_size", "workers"):
+            need(_is_int(getattr(self, name)) and getattr(self, name) >= 1, name, "an integer >= 1")
+        for name in ("rounds", "threads", "seed", "round0_steps", "episode_frames"):
+            need(_is_int(getattr(self, name)) and getattr(self, name) >= 0, name, "an integer >= 0")
+        need(self.train_mode in TRAIN_MODES, "train_mode", f"one of {TRAIN_MODES}")
+        need(len(self.beta) >= 1 and all(0.0 <= b <= 1.0 for b in self.beta), "beta", "values in [0, 1]")
+        need(self.round0 is not None or self.round0_steps >= 1, "round0_steps", ">= 1 unless --round0 is given")
+        need(self.round0 is None or self.expert_data is not None, "round0", "given together with --expert-data")
+        need(self.lr > 0 and math.isfinite(self.lr), "lr", "a number > 0")
+        need(isinstance(self.train_args, dict), "train_args", "a mapping of train settings")
+
+    def beta_of(self, r: int) -> float:
+        return float(self.beta[min(r, len(self.beta)) - 1])
+
+    def to_dict(self) -> dict[str, Any]:
+        d = asdict(self)
+        d["beta"] = list(self.beta)
+        return d
+
+
+def _is_int(v: Any) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+# ----------------------------------------------------------------------------------------------- routes
+class BenchRoutes:
+    """Turns down a drawn route that is one of the benchmark's (same start and goal within SAME_ROUTE_M)."""
+
+    def __init__(self, town: str) -> None:
+        from yawil.bench.suites import load_routes
+
+        try:
+            tasks = load_routes(town)
+        except (FileNotFoundError, ValueError):
+            tasks = {}  # a town without benchmark routes (a custom layout) has nothing to avoid
+        ends = [(r.start.x, r.start.y, r.goal.x, r.goal.y) for routes in tasks.values() for r in routes]
+        self.ends = np.asarray(ends, dtype=np.float64).reshape(-1, 4)
+
+    def __call__(self, route: Any) -> bool:
+        if not len(self.ends):
+            return False
+        xy = np.asarray(route.xy, dtype=np.float64)
+        here = np.array([xy[0, 0], xy[0, 1], xy[-1, 0], xy[-1, 1]])
+        d_start = np.hypot(*(self.ends[:, :2] - here[:2]).T)
+        d_goal = np.hypot(*(self.ends[:, 2:] - here[2:]).T)
+        return bool(np.any((d_start < SAME_ROUTE_M) & (d_goal < SAME_ROUTE_M)))
+
+
+def load_learner(checkpoint: str, threads: int = 1) -> Any:
+    """The learner of a collection process: the checkpoint's agent on the CPU, with `threads` torch threads."""
+    import torch
+
+    from yawil.agent import Agent
+
+    torch.set_num_threads(threads)
+    return Agent.from_checkpoint(checkpoint, device="cpu")
+
+
+# ------------------------------------------------------------------------------------------------- loop
+class DaggerRun:
+    """The folders of a run and its stages; `run()` does what is left."""
+
+    def __init__(self, out: Path, cfg: DaggerConfig, log: Callable[[str], None] = print, progress: bool = True) -> None:
+        self.out, self.cfg, self.log, self.progress = Path(out), cfg, log, progress
+
+    # where things live
+    def expert_data(self) -> Path:
+        return Path(self.cfg.expert_data) if self.cfg.expert_data else self.out / "data" / "expert"
+
+    def round_data(self, r: int) -> Path:
+        return self.out / "data" / f"round_{r:02d}"
+
+    def round_run(self, r: int) -> Path:
+        return self.out / "train" / f"round_{r:02d}"
+
+    def policy(self, r: int) -> Path:
+        """The checkpoint that round r ends with (round 0: the given one or the trained one)."""
+        if r == 0 and self.cfg.round0:
+            return Path(self.cfg.round0)
+        return self.round_run(r) / "last.pt"
+
+    def stage(self, name: str) -> Path:
+        return self.out / "stages" / f"{name}.json"
+
+    def data_roots(self, r: int) -> list[str]:
+        return [str(self.expert_data())] + [str(self.round_data(i)) for i in range(1, r + 1)]
+
+    # the run
+    def check_config(self) -> None:
+        """A run folder belongs to one config: resuming with another would mix two experiments."""
+        from yawil.bench.records import write_json_atomic
+
+        path = self.out / "dagger.json"
+        mine = self.cfg.to_dict()
+        if path.is_file():
+            try:
+                saved = json.loads(path.read_text(encoding="utf-8"))
+            except ValueError as err:
+                raise ValueError(f"{path}: not valid JSON ({err})") from None
+            if not isinstance(saved, dict):
+                raise ValueError(f"{path}: expected a JSON object")
+            growable = {"rounds"}  # more rounds may be added to a finished run
+            diff = sorted(k for k in set(saved) | set(mine) if k not in growable and saved.get(k) != mine.get(k))
+            if diff:
+                raise ValueError(
+                    f"{path}: this folder holds a DAgger run with other settings ({', '.join(f'{k}: {saved.get(k)!r} -> {mine.get(k)!r}' for k in diff)}); "
+                    "use another --out"
+                )
+        self.out.mkdir(parents=True, exist_ok=True)
+        write_json_atomic(path, mine)
+
+    def run(self) -> Path:
+        self.check_config()
+        cfg = self.cfg
+        t0 = time.perf_counter()
+        if cfg.expert_data is None:
+            run_stage(self.stage("expert_data"), self.collect_expert, self.log, "round 0: expert data")
+        elif not (self.expert_data() / "manifest.json").is_file():
+            raise ValueError(f"--expert-data {self.expert_data()}: not a yawil dataset (no manifest.json)")
+        if cfg.round0 is None:
+            run_stage(self.stage("train_00"), lambda: self.train(0), self.log, "round 0: training")
+        elif not Path(cfg.round0).is_file():
+            raise ValueError(f"--round0 {cfg.round0}: no such checkpoint")
+        for r in range(1, cfg.rounds + 1):
+            run_stage(self.stage(f"data_{r:02d}"), functools.partial(self.collect_round, r), self.log,
+                      f"round {r}: on-policy data (beta {cfg.beta_of(r)})")
+            run_stage(self.stage(f"train_{r:02d}"), functools.partial(self.train, r), self.log, f"round {r}: training")
+        final = self.policy(cfg.rounds)
+        self.log(f"dagger: {cfg.rounds} round(s) done in {time.perf_counter() - t0:.0f} s; policy {final}")
+        return final
+
+    def collect_expert(self) -> dict[str, Any]:
+        from yawil.data.collect import collect
+
+        s = collect(self.expert_data(), town=self.cfg.town, weathers="train", frames=self.cfg.expert_frames,
+                    workers=self.cfg.workers, seed=self.cfg.seed, progress=self.progress, desc="round 0",
+                    max_episode_frames=self.cfg.episode_frames)
+        return {"frames": s.dataset_frames, "episodes": s.episodes_written + s.episodes_skipped}
+
+    def collect_round(self, r: int) -> dict[str, Any]:
+        from yawil.data.collect import Learner, OnPolicy, collect
+
+        cfg = self.cfg
+        policy = self.policy(r - 1)
+        onpolicy = OnPolicy(round=r, beta=cfg.beta_of(r), segment_seconds=cfg.segment_seconds,
+                            takeover_lateral=cfg.takeover_lateral, takeover_decel=cfg.takeover_decel,
+                            takeover_stall=cfg.takeover_stall, takeover_seconds=cfg.takeover_seconds)
+        learner = Learner(factory=functools.partial(load_learner, str(policy), 1), onpolicy=onpolicy,
+                          identity=str(policy.resolve()), min_world_seed=BENCH_WORLD_SEED_LIMIT,
+                          reject_route=BenchRoutes(cfg.town))
+        # No steering noise (the learner makes its own mistakes); the second before a collision is not a label.
+        s = collect(self.round_data(r), town=cfg.town, weathers="train", frames=cfg.round_frames, workers=cfg.workers,
+                    seed=cfg.seed + ROUND_SEED_STRIDE * r, progress=self.progress, learner=learner, desc=f"round {r}",
+                    noise_fraction=0.0, trim_seconds=1.0, max_episode_frames=cfg.episode_frames)
+        self.log(f"round {r}: {s.frames_written} frames stored this run; frames driven by "
+                 f"{json.dumps(s.drivers)}; {s.takeovers} takeovers; outcomes {json.dumps(s.outcomes)}")
+        return {"frames": s.dataset_frames, "drivers": s.drivers, "takeovers": s.takeovers, "outcomes": s.outcomes,
+                "policy": str(policy)}
+
+    def train(self, r: int) -> dict[str, Any]:
+        from yawil.train import TrainConfig, train
+
+        cfg = self.cfg
+        base = {"model": cfg.model, "batch_size": cfg.batch_size, "lr": cfg.lr, "seed": cfg.seed,
+                "threads": cfg.threads, "progress": self.progress, **cfg.train_args}
+        if r == 0 or cfg.train_mode == "scratch":
+            steps = cfg.round0_steps + r * cfg.round_steps
+            init = None
+        else:
+            steps, init = cfg.round_steps, str(self.policy(r - 1))
+        run_dir = self.round_run(r)
+        tc = TrainConfig.from_dict({**base, "data": self.data_roots(r), "out": str(run_dir), "max_steps": steps,
+                                    "init_from": init}, "dagger")
+        result = train(tc, resume=(run_dir / "last.pt").is_file())
+        last = result.metrics[-1] if result.metrics else {}
+        return {"steps": result.steps, "val_loss": last.get("val_loss"), "best_val": result.best_val,
+                "data": self.data_roots(r), "init_from": init}
+
+
+# -------------------------------------------------------------------------------------------------- CLI
+def add_parser(subparsers: Any) -> argparse.ArgumentParser:
+    p: argparse.ArgumentParser = subparsers.add_parser(
+        "dagger", help="on-policy data aggregation with the expert (DAgger rounds)", description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
+    d = DaggerConfig()
+    p.add_argument("--out", required=True, help="run folder (data/, train/, stages/, dagger.json)")
+    p.add_argument("--model", default=d.model, help=f"model name (default {d.model})")
+    p.add_argument("--town", default=d.town, help=f"training town (default {d.town})")
+    p.add_argument("--seed", type=int, default=d.seed, help="seed of collection and training (default 0)")
+    p.add_argument("--expert-frames", type=int, default=d.expert_frames, help=f"round-0 expert frames (default {d.expert_frames})")
+    p.add_argument("--rounds", type=int, default=d.rounds, help=f"on-policy rounds (default {d.rounds})")
+    p.add_argument("--round-frames", type=int, default=d.round_frames, help=f"frames per round (default {d.round_frames})")
+    p.add_argument("--episode-frames", type=int, default=d.episode_frames,
+                   help="end every episode after this many steps (default 0: no limit)")
+    p.add_argument("--round0-steps", type=int, default=d.round0_steps, help=f"round-0 training steps (default {d.round0_steps})")
+    p.add_argument("--round-steps", type=int, default=d.round_steps, help=f"training steps per round (default {d.round_steps})")
+    p.add_argument("--train-mode", choices=TRAIN_MODES, default=d.train_mode,
+                   help="finetune: go on from the last policy; scratch: retrain on the aggregate (default finetune)")
+    p.add_argument("--beta", default=",".join(str(b) for b in d.beta),
+                   help="probability per segment that the expert drives, per round, comma-separated; the last repeats (default 0)")
+    p.add_argument("--segment-seconds", type=float, default=d.segment_seconds, help="length of a beta segment; 0: per episode")
+    p.add_argument("--takeover-lateral", type=float, default=d.takeover_lateral, help="m off the route before the expert takes over")
+    p.add_argument("--takeover-decel", type=float, default=d.takeover_decel,
+                   help="m/s^2 of braking the learner would need before the expert takes over")
+    p.add_argument("--takeover-stall", type=float, default=d.takeover_stall, help="s standing while the expert would drive")
+    p.add_argument("--takeover-seconds", type=float, default=d.takeover_seconds, help="s the expert keeps the wheel")
+    p.add_argument("--batch-size", type=int, default=d.batch_size)
+    p.add_argument("--lr", type=float, default=d.lr)
+    p.add_argument("--workers", type=int, default=d.workers, help="collection processes (default 2)")
+    p.add_argument("--threads", type=int, default=d.threads, help="torch threads of training (default 0: all cores)")
+    p.add_argument("--train-arg", action="append", default=[], metavar="KEY=VALUE",
+                   help="a further train setting (JSON value), e.g. --train-arg speed_dropout=0.3")
+    p.add_argument("--round0", default=None, help="use this checkpoint as the round-0 policy (with --expert-data)")
+    p.add_argument("--expert-data", default=None, help="use this expert dataset as round 0's data")
+    p.add_argument("--no-progress", action="store_true")
+    return p
+
+
+def _floats(text: str, option: str) -> tuple[float, ...]:
+    try:
+        return tuple(float(v) for v in text.split(",") if v.strip())
+    except ValueError:
+        raise ValueError(f"{option}: expected comma-separated numbers, got {text!r}") from None
+
+
+def _train_args(items: Sequence[str]) -> dict[str, Any]:
+    from yawil.train import TrainConfig
+
+    known = {f.name for f in fields(TrainConfig)} - {"model", "data", "out", "max_steps", "init_from"}
+    out: dict[str, Any] = {}
+    for item in items:
+        key, sep, text = item.partition("=")
+        if not sep or key not in known:
+            raise ValueError(f"--train-arg {item!r}: expected KEY=VALUE with KEY one of {sorted(known)}")
+        try:
+            out[key] = json.loads(text)
+        except json.JSONDecodeError:
+            out[key] = text
+    return out
+
+
+def run(args: argparse.Namespace) -> int:
+    try:
+        cfg = DaggerConfig(
+            model=args.model, town=args.town, seed=args.seed, expert_frames=args.expert_frames, rounds=args.rounds,
+            round_frames=args.round_frames, episode_frames=args.episode_frames, round0_steps=args.round0_steps, round_steps=args.round_steps,
+            train_mode=args.train_mode, beta=_floats(args.beta, "--beta"), segment_seconds=args.segment_seconds,
+            takeover_lateral=args.takeover_lateral, takeover_decel=args.takeover_decel,
+            takeover_stall=args.takeover_stall, takeover_seconds=args.takeover_seconds, batch_size=args.batch_size,
+            lr=args.lr, workers=args.workers, threads=args.threads, train_args=_train_args(args.train_arg),
+            round0=args.round0, expert_data=args.expert_data,
+        )
+        from yawil.train import TrainConfig
+
+        TrainConfig.from_dict({"model": cfg.model, **cfg.train_args}, "--train-arg")  # bad values fail before any work
+        DaggerRun(Path(args.out), cfg, log=lambda m: print(f"[dagger {time.strftime('%H:%M:%S')}] {m}", flush=True),
+                  progress=not args.no_progress).run()
+    except (ValueError, FileNotFoundError, FileExistsError) as err:
+        raise SystemExit(f"yawil dagger: {err}") from None
+    return 0

@@ -1,0 +1,163 @@
+"""DAgger: who drives each frame (schedule, takeovers), expert labels on learner frames, seeds and routes kept
+off the benchmark's, and a tiny end-to-end run that resumes."""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+import pytest
+from test_collect import LineWorld, small_cfg
+
+from yawil.dagger import BENCH_WORLD_SEED_LIMIT, BenchRoutes, DaggerConfig, DaggerRun
+from yawil.data.collect import CollectConfig, Learner, OnPolicy, collect, plan_episode, run_episode
+from yawil.data.manifest import read_manifest
+from yawil.data.reader import open_episode
+from yawil.data.schema import DRIVERS
+from yawil.data.writer import DatasetWriter
+from yawil.sim.types import Control, Observation
+
+LEARNER, TAKEOVER, EXPERT = DRIVERS.index("learner"), DRIVERS.index("takeover"), DRIVERS.index("expert")
+
+
+class Scripted:
+    """A learner that always does the same thing (and counts its calls)."""
+
+    def __init__(self, control: Control) -> None:
+        self.control, self.calls, self.resets = control, 0, 0
+
+    def reset(self) -> None:
+        self.resets += 1
+
+    def act(self, obs: Observation) -> Control:
+        self.calls += 1
+        return self.control
+
+
+def _drive(tmp_path: Path, learner: Scripted, onpolicy: OnPolicy, name: str = "d") -> tuple[dict[str, np.ndarray], list[Control], object]:
+    world = LineWorld()
+    cfg = small_cfg(noise_fraction=0.0)
+    writer = DatasetWriter(tmp_path / name, {"guidance": {"count": 15}})
+    r = run_episode(world, plan_episode(cfg, 0, 0), cfg, writer, learner=learner, onpolicy=onpolicy)
+    writer.close()
+    m = read_manifest(tmp_path / name)
+    with open_episode(m.path_of(m.episodes[0])) as ep:
+        labels = ep.labels()
+    return labels, world.applied, r
+
+
+def test_a_learner_that_strays_hands_over_and_the_labels_stay_the_experts(tmp_path: Path) -> None:
+    learner = Scripted(Control(steer=-0.5, throttle=0.5, brake=0.0))  # veers right, off the road
+    labels, applied, r = _drive(tmp_path, learner, OnPolicy(round=2, takeover_lateral=1.0, takeover_seconds=1.0))
+    drivers = labels["driver"]
+    assert (drivers == LEARNER).any() and (drivers == TAKEOVER).any() and not (drivers == EXPERT).any()
+    assert r.takeovers >= 1 and r.drivers["learner"] + r.drivers["takeover"] == r.frames_run  # type: ignore[attr-defined]
+    assert learner.calls == r.frames_run and learner.resets == 1  # type: ignore[attr-defined]
+    assert (labels["round"] == 2).all()
+    # learner frames: the car did what the learner said, the label is what the expert would have done
+    rows = np.nonzero(drivers == LEARNER)[0]
+    assert np.allclose(np.array([applied[f].steer for f in labels["frame"][rows]]), -0.5)
+    assert np.all(labels["steer"][rows] > -0.5)  # the expert steers back towards the route
+    # takeover frames: the expert's own control drove the car
+    rows = np.nonzero(drivers == TAKEOVER)[0]
+    assert np.allclose([applied[f].steer for f in labels["frame"][rows]], labels["steer"][rows], atol=1e-6)
+
+
+def test_a_learner_that_never_brakes_is_stopped_by_the_expert(tmp_path: Path) -> None:
+    learner = Scripted(Control(steer=0.0, throttle=1.0, brake=0.0))  # full throttle towards the goal
+    labels, applied, r = _drive(tmp_path, learner, OnPolicy(takeover_lateral=50.0, takeover_seconds=30.0))
+    assert r.takeovers >= 1  # type: ignore[attr-defined]
+    first = int(np.nonzero(labels["driver"] == TAKEOVER)[0][0])
+    assert labels["brake"][first] > 0.0 or labels["target_speed"][first] < labels["speed"][first]
+    assert (labels["speed_reason"] >= 0).all() and np.isfinite(labels["target_speed"]).all()
+
+
+def test_a_stalled_learner_is_started_by_the_expert(tmp_path: Path) -> None:
+    learner = Scripted(Control(steer=0.0, throttle=0.0, brake=1.0))
+    labels, applied, r = _drive(tmp_path, learner, OnPolicy(takeover_stall=2.0, takeover_seconds=2.0))
+    first = int(np.nonzero(labels["driver"] == TAKEOVER)[0][0])
+    assert 19 <= labels["frame"][first] <= 22  # about 2 s of standing at 10 Hz
+    assert labels["throttle"][first] > 0.0
+
+
+def test_beta_one_is_the_expert_alone_and_the_schedule_is_seeded(tmp_path: Path) -> None:
+    learner = Scripted(Control(steer=0.0, throttle=0.0, brake=1.0))
+    labels, _, _ = _drive(tmp_path, learner, OnPolicy(beta=1.0), "all")
+    assert (labels["driver"] == EXPERT).all()
+    mixed = OnPolicy(beta=0.5, segment_seconds=1.0, takeover_stall=100.0)
+    a, _, _ = _drive(tmp_path, Scripted(Control(throttle=0.4)), mixed, "a")
+    b, _, _ = _drive(tmp_path, Scripted(Control(throttle=0.4)), mixed, "b")
+    assert {EXPERT, LEARNER} <= set(a["driver"].tolist())
+    for name in a:
+        assert np.array_equal(a[name], b[name], equal_nan=True), name
+
+
+def test_onpolicy_needs_both_parts() -> None:
+    with pytest.raises(ValueError, match="both learner and onpolicy"):
+        run_episode(LineWorld(), plan_episode(small_cfg(), 0, 0), small_cfg(), None, onpolicy=OnPolicy())
+    with pytest.raises(ValueError, match="OnPolicy.beta"):
+        OnPolicy(beta=1.5)
+    with pytest.raises(ValueError, match="round"):
+        OnPolicy(round=0)
+
+
+def test_dagger_world_seeds_and_routes_are_disjoint_from_the_benchmarks() -> None:
+    from yawil.bench.suites import episodes
+
+    bench = episodes("all") + episodes("square")  # every protocol episode of every suite, default seeds
+    assert max(ep.world_seed for ep in bench) < BENCH_WORLD_SEED_LIMIT
+    cfg = CollectConfig()
+    seeds = [plan_episode(cfg, s, i, BENCH_WORLD_SEED_LIMIT).world_seed for s in (1000, 2000, 1001) for i in range(300)]
+    assert min(seeds) >= BENCH_WORLD_SEED_LIMIT
+    reject = BenchRoutes("town01")
+    assert len(reject.ends) > 0
+    for ep in bench:
+        if ep.town != "town01":
+            continue
+        s, g = ep.route.start, ep.route.goal
+        assert reject(SimpleNamespace(xy=np.array([[s.x, s.y], [g.x, g.y]])))
+        assert not reject(SimpleNamespace(xy=np.array([[s.x + 40.0, s.y], [g.x, g.y]])))
+
+
+def test_a_rejecting_town_is_an_error_not_a_hang(tmp_path: Path) -> None:
+    learner = Learner(factory=lambda: Scripted(Control()), onpolicy=OnPolicy(), identity="x",
+                      reject_route=lambda route: True)
+    with pytest.raises(ValueError, match="rejected"):
+        collect(tmp_path / "r", town="line", weathers="ClearNoon", episodes=1, progress=False,
+                world_factory=LineWorld, config=small_cfg(), learner=learner)
+
+
+def test_dagger_config_is_checked() -> None:
+    with pytest.raises(ValueError, match="train_mode"):
+        DaggerConfig(train_mode="sometimes")
+    with pytest.raises(ValueError, match="beta"):
+        DaggerConfig(beta=(0.5, 2.0))
+    with pytest.raises(ValueError, match="round0"):
+        DaggerConfig(round0="x.pt")
+    assert DaggerConfig(beta=(0.5, 0.25)).beta_of(1) == 0.5 and DaggerConfig(beta=(0.5, 0.25)).beta_of(5) == 0.25
+
+
+def test_a_tiny_dagger_run_end_to_end_and_resumed(tmp_path: Path) -> None:
+    """Embedded town01, the small yaw-guided net: round 0 and one on-policy round, then a rerun skips all."""
+    cfg = DaggerConfig(model="yaw-guided", expert_frames=30, rounds=1, round_frames=20, episode_frames=40,
+                       round0_steps=2, round_steps=2, batch_size=8, workers=1, threads=1,
+                       train_args={"val_fraction": 0.5, "augment": {"enabled": False}})
+    out = tmp_path / "dg"
+    # two expert episodes are needed for a split: 30 frames at <= 40 per episode
+    final = DaggerRun(out, cfg, log=lambda m: None, progress=False).run()
+    assert final == out / "train" / "round_01" / "last.pt" and final.is_file()
+    m = read_manifest(out / "data" / "round_01")
+    assert m.frames >= 20 and m.config["learner"]["checkpoint"].endswith("round_00/last.pt")
+    with open_episode(m.path_of(m.episodes[0])) as ep:
+        labels = ep.labels()
+    assert (labels["round"] == 1).all() and set(labels["driver"].tolist()) <= {LEARNER, TAKEOVER}
+    assert all(e.episode >= 1000 * 100_000 for e in m.episodes)  # round seeds keep the ids apart
+    marker = json.loads((out / "stages" / "train_01.json").read_text())
+    assert marker["steps"] == 2 and marker["init_from"].endswith("round_00/last.pt")
+    logs: list[str] = []
+    DaggerRun(out, cfg, log=logs.append, progress=False).run()
+    assert sum("skipped" in line for line in logs) == 4
+    with pytest.raises(ValueError, match="other settings"):
+        DaggerRun(out, DaggerConfig(**{**cfg.to_dict(), "beta": (0.5,)}), log=lambda m: None).run()

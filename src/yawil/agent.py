@@ -61,6 +61,41 @@ class PostProcess:
 
 
 @dataclass
+class SpeedControl:
+    """Throttle and brake from a predicted target speed: the expert's PI on the speed error (its gains).
+
+    Why: a policy that outputs throttle directly learns inertia (it copies its own speed, CILRS); a target
+    speed is a statement about the scene, and the controller turns a predicted stop into braking at once
+    (TransFuser++ and TCP drive their targets through controllers the same way).
+    """
+
+    kp: float = 0.6
+    ki: float = 0.15
+    integral_limit: float = 2.0
+    max_throttle: float = 0.75
+    brake_gain: float = 0.6
+    brake_deadband: float = 0.1
+    stop_speed: float = 0.3  # m/s: a target below this, when nearly standing, holds the brake
+    dt: float = 0.1
+    integral: float = 0.0
+
+    def reset(self) -> None:
+        self.integral = 0.0
+
+    def __call__(self, target: float, speed: float) -> tuple[float, float]:
+        if target < self.stop_speed and speed < 0.5:
+            self.integral = 0.0
+            return 0.0, 1.0
+        error = target - speed
+        u = self.kp * error + self.ki * self.integral
+        if not (u >= self.max_throttle and error > 0):
+            self.integral = float(np.clip(self.integral + error * self.dt, -self.integral_limit, self.integral_limit))
+        if u < -self.brake_deadband:
+            return 0.0, float(np.clip(-u * self.brake_gain, 0.0, 1.0))
+        return float(np.clip(u, 0.0, self.max_throttle)), 0.0
+
+
+@dataclass
 class StepOutput:
     """What the network said at the last step, before post-processing (numpy, batch dimension removed)."""
 
@@ -71,6 +106,7 @@ class StepOutput:
     guidance: np.ndarray | None  # the guidance vector given (before normalisation)
     command: int | None  # the branch index given
     control: Control = field(default_factory=Control)
+    target_speed: float | None = None  # m/s, from the aux head (models built with aux=true)
 
 
 class Agent:
@@ -90,6 +126,7 @@ class Agent:
         yaw_noise_deg: float = 0.0,
         command_noise_p: float = 0.0,
         seed: int = 0,
+        speed_control: bool = False,
     ) -> None:
         if yaw_noise_deg < 0.0:
             raise ValueError(f"yaw_noise_deg={yaw_noise_deg!r}: expected >= 0 degrees")
@@ -107,6 +144,10 @@ class Agent:
                 f"the model expects {getattr(model, 'guidance_dim', '?')}"
             )
         self.post = post or PostProcess()
+        if speed_control and getattr(model, "aux_head", None) is None:
+            raise ValueError(f"speed_control needs a model with an aux head (trained with --model-arg aux=true); "
+                             f"{getattr(model, 'name', type(model).__name__)} has none")
+        self.speed_control: SpeedControl | None = SpeedControl() if speed_control else None
         self.yaw_noise_deg = float(yaw_noise_deg)
         self.command_noise_p = float(command_noise_p)
         self.seed = int(seed)
@@ -137,6 +178,8 @@ class Agent:
         """
         self._hint = None
         self.last = None
+        if self.speed_control is not None:
+            self.speed_control.reset()
         if seed is not None:
             self.seed = int(seed)
             self._rng = np.random.default_rng(self.seed)
@@ -190,6 +233,12 @@ class Agent:
             out = self.model(x["image"], x["speed"], guidance=x["guidance"], command=x["command"])
         actions = out.actions[0].float().cpu().numpy()
         speed = float(self.norm.speed_inverse(out.speed[0, 0].float()).cpu())
+        target_speed = None
+        if out.aux is not None:
+            target_speed = max(0.0, float(self.norm.speed_inverse(out.aux[0, 0].float()).cpu()))
+        if self.speed_control is not None and target_speed is not None:
+            throttle, brake = self.speed_control(target_speed, max(float(obs.speed), 0.0))
+            actions = np.array([actions[0], throttle, brake], dtype=np.float32)
         control = self.post(actions, float(obs.speed))
         self.last = StepOutput(
             actions=actions,
@@ -199,5 +248,6 @@ class Agent:
             guidance=guidance_raw,
             command=command_idx,
             control=control,
+            target_speed=target_speed,
         )
         return control

@@ -83,6 +83,8 @@ class TrainConfig:
     # Inertia countermeasure (CILRS, Codevilla et al. 2019): with this probability per training sample the
     # speed input is replaced by the training mean (0 once normalised), so the net cannot copy its speed.
     speed_dropout: float = 0.0
+    # Weight of the aux heads' loss on the expert's privileged labels (a model built with aux=true); 0: off.
+    aux_weight: float = 0.0
     # Start from the weights and normalisation of this yawil checkpoint (fine-tuning, e.g. a DAgger round).
     init_from: str | None = None
     # Optimiser steps after which the checkpoint is also kept as step_NNNNNN.pt (learning curves, selection).
@@ -124,6 +126,7 @@ class TrainConfig:
         need(self.brake_fraction is None or (_is_num(self.brake_fraction) and 0.0 < self.brake_fraction < 1.0),
              "brake_fraction", "None or a number in (0, 1)")
         need(_is_num(self.speed_dropout) and 0.0 <= self.speed_dropout <= 1.0, "speed_dropout", "a number in [0, 1]")
+        need(_is_num(self.aux_weight) and self.aux_weight >= 0.0, "aux_weight", "a number >= 0")
         need(self.init_from is None or (isinstance(self.init_from, str) and bool(self.init_from)), "init_from",
              "None or a checkpoint path")
         need(isinstance(self.keep_steps, list) and all(_is_int(v) and v >= 1 for v in self.keep_steps), "keep_steps",
@@ -271,6 +274,7 @@ class Batch:
     command: Tensor | None  # [B] int64 branch index
     action: Tensor  # [B, 3] targets
     speed_raw: Tensor  # [B, 1] m/s
+    privileged: Tensor | None = None  # [B, 4] m/s, m, m/s, 0/1 (NaN / -1 unknown): aux-head targets
 
 
 def prepare_batch(
@@ -286,7 +290,8 @@ def prepare_batch(
         guidance = norm.guidance(torch.as_tensor(raw[f"guidance_{kind}"]).to(dev).float())
     command = torch.as_tensor(raw["command"]).to(dev).long().reshape(-1) if uses_command else None
     action = torch.as_tensor(raw["action"]).to(dev).float()
-    return Batch(image, norm.speed(speed_raw), guidance, command, action, speed_raw)
+    privileged = torch.as_tensor(raw["privileged"]).to(dev).float() if "privileged" in raw else None
+    return Batch(image, norm.speed(speed_raw), guidance, command, action, speed_raw, privileged)
 
 
 def label_arrays(dataset: Any, kind: str | None) -> tuple[np.ndarray, np.ndarray | None]:
@@ -376,14 +381,40 @@ def predicted_actions(model: torch.nn.Module, out: Any, command: Tensor | None) 
 
 
 def compute_loss(
-    model: torch.nn.Module, batch: Batch, cfg: TrainConfig
+    model: torch.nn.Module, batch: Batch, cfg: TrainConfig, norm: Norm | None = None
 ) -> tuple[Tensor, Tensor, Any]:
-    """alpha * L(actions) + beta * L(speed), computed in float32 whatever the autocast dtype."""
+    """alpha * L(actions) + beta * L(speed) (+ aux_weight * the aux loss), in float32 whatever the autocast."""
     out = model(batch.image, batch.speed, guidance=batch.guidance, command=batch.command)
     pred = predicted_actions(model, out, batch.command).float()
     crit = _criterion(cfg.loss)
     loss = cfg.alpha * crit(pred, batch.action) + cfg.beta * crit(out.speed.float(), batch.speed)
+    if cfg.aux_weight > 0.0:
+        if out.aux is None:
+            raise ValueError(f"aux_weight={cfg.aux_weight} but model {cfg.model} has no aux head (--model-arg aux=true)")
+        if batch.privileged is None or norm is None:
+            raise ValueError("aux_weight > 0 needs the privileged labels of the samples (schema-2 data) and the norm")
+        loss = loss + cfg.aux_weight * aux_loss(out.aux.float(), batch.privileged, norm, cfg.loss)
     return loss, pred, out
+
+
+def aux_targets(privileged: Tensor, norm: Norm) -> tuple[Tensor, Tensor]:
+    """(targets in the aux head's scale, mask of known ones), both [B, 4]; see models.base.AUX_NAMES."""
+    from yawil.data.schema import LEAD_RANGE
+
+    ts, ld, ls, light = privileged.unbind(dim=1)
+    target = torch.stack([norm.speed(ts[:, None])[:, 0], ld / LEAD_RANGE, norm.speed(ls[:, None])[:, 0], light], dim=1)
+    known = torch.stack([ts.isfinite(), ld.isfinite(), ls.isfinite(), light >= 0], dim=1)
+    return torch.where(known, target, torch.zeros_like(target)), known
+
+
+def aux_loss(aux: Tensor, privileged: Tensor, norm: Norm, loss: str = "l1") -> Tensor:
+    """Mean over the known labels: regression terms with the action loss's criterion, BCE for the light."""
+    target, known = aux_targets(privileged, norm)
+    crit = _criterion(loss)
+    w = known.float()
+    reg = crit(aux[:, :3], target[:, :3], reduction="none") * w[:, :3]
+    bce = torch.nn.functional.binary_cross_entropy_with_logits(aux[:, 3], target[:, 3], reduction="none") * w[:, 3]
+    return (reg.sum() + bce.sum()) / w.sum().clamp_min(1.0)
 
 
 # ------------------------------------------------------------------------------------------------ state
@@ -450,7 +481,7 @@ def validate(
     for raw in loader:
         b = prepare_batch(raw, norm, kind, uses_command, runtime)
         with runtime.autocast():
-            loss, pred, out = compute_loss(model, b, cfg)
+            loss, pred, out = compute_loss(model, b, cfg, norm)
         size = b.image.shape[0]
         total += float(loss) * size
         n += size
@@ -716,7 +747,7 @@ def _train_epoch(
         if cfg.speed_dropout > 0.0:
             b.speed = drop_speed(b.speed, cfg.speed_dropout, gen)
         with runtime.autocast():
-            loss, _, _ = compute_loss(model, b, cfg)
+            loss, _, _ = compute_loss(model, b, cfg, norm)
         optimizer.zero_grad(set_to_none=True)
         scaler.scale(loss).backward()
         scaler.step(optimizer)

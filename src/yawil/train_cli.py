@@ -38,6 +38,8 @@ _OPTIONS: tuple[tuple[str, str, Any, str], ...] = (
      "(default: the data's own)"),
     ("--speed-dropout", "speed_dropout", float,
      "probability per training sample that the speed input is replaced by its mean (inertia; default 0)"),
+    ("--aux-weight", "aux_weight", float,
+     "weight of the aux loss on the expert's privileged labels (needs --model-arg aux=true; default 0)"),
     ("--init-from", "init_from", str, "start from the weights and normalisation of this yawil checkpoint (fine-tune)"),
     ("--keep-steps", "keep_steps", lambda t: _step_list(t),
      "comma-separated step counts whose checkpoints are kept as step_NNNNNN.pt (learning curves)"),

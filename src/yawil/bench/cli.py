@@ -43,6 +43,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--record", action="store_true", help="save a video per episode (camera + bird's-eye) in OUT/videos")
     p.add_argument("--yaw-noise-deg", type=float, default=0.0, help="Gaussian noise sigma on guidance yaw (degrees)")
     p.add_argument("--command-noise-p", type=float, default=0.0, help="probability of a 5-frame wrong command")
+    p.add_argument("--speed-control", action="store_true",
+                   help="learned agents with an aux head: throttle and brake from its predicted target speed")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--backend", default="embedded", choices=("embedded", "carla"), help="simulator (default embedded)")
     p.add_argument("--host", default="localhost", help="--backend carla: server host (default localhost)")
@@ -91,7 +93,7 @@ def _run_suite(args: argparse.Namespace) -> int:
     from yawil.bench.runner import AgentSpec, run_benchmark
     from yawil.bench.suites import episodes
 
-    spec = AgentSpec(args.agent, args.yaw_noise_deg, args.command_noise_p).validate()
+    spec = AgentSpec(args.agent, args.yaw_noise_deg, args.command_noise_p, args.speed_control).validate()
     factory = None
     if args.backend != "embedded":
         if args.workers != 1:

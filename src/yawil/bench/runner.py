@@ -42,19 +42,23 @@ class AgentSpec:
     agent: str
     yaw_noise_deg: float = 0.0
     command_noise_p: float = 0.0
+    speed_control: bool = False  # drive throttle and brake from the aux head's target speed (Agent's option)
 
     @property
     def is_expert(self) -> bool:
         return self.agent == EXPERT
 
     def options(self) -> dict[str, float]:
-        return {"yaw_noise_deg": self.yaw_noise_deg, "command_noise_p": self.command_noise_p}
+        opts = {"yaw_noise_deg": self.yaw_noise_deg, "command_noise_p": self.command_noise_p}
+        if self.speed_control:  # only when set, so the records of earlier runs still match
+            opts["speed_control"] = True
+        return opts
 
     def validate(self) -> AgentSpec:
         if not self.is_expert and not Path(self.agent).is_file():
             raise ValueError(f"--agent {self.agent!r}: expected 'expert' or the path of a checkpoint file")
-        if self.is_expert and (self.yaw_noise_deg or self.command_noise_p):
-            raise ValueError("noise options apply to learned agents, not to the expert")
+        if self.is_expert and (self.yaw_noise_deg or self.command_noise_p or self.speed_control):
+            raise ValueError("noise and speed-control options apply to learned agents, not to the expert")
         if self.yaw_noise_deg < 0 or not 0 <= self.command_noise_p <= 1:
             raise ValueError(
                 f"yaw_noise_deg must be >= 0 and command_noise_p in [0, 1], got {self.yaw_noise_deg}, {self.command_noise_p}"
@@ -73,7 +77,8 @@ class AgentSpec:
         from yawil.agent import Agent
 
         return Agent.from_checkpoint(  # type: ignore[no-any-return]
-            self.agent, yaw_noise_deg=self.yaw_noise_deg, command_noise_p=self.command_noise_p, seed=seed
+            self.agent, yaw_noise_deg=self.yaw_noise_deg, command_noise_p=self.command_noise_p, seed=seed,
+            speed_control=self.speed_control,
         )
 
 

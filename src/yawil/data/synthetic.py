@@ -102,6 +102,9 @@ def synthetic_episode(rng: np.random.Generator, frames: int, k: int, image_noise
                     frame=frame,
                     noise=bool(rng.random() < 0.1),
                     lane_follow_turn=kind == "curve",
+                    # privileged labels derived from the draws above (no new draw: older fixtures stay the same)
+                    target_speed=0.0 if braking else speed, speed_reason=4 if braking else 0,
+                    lead_distance=10.0 if braking else 50.0, lead_speed=0.0, light_ahead=0,
                 )
             )
             i += 1

@@ -25,6 +25,14 @@ class ModelOutput(NamedTuple):
     speed: Tensor  # [B, 1] predicted (normalised) speed
     attention: list[Tensor]  # YILRatt: one [B, h, w] probability map per attended layer; [] otherwise
     branches: Tensor | None  # command models: [B, 4, 3] all branches; None otherwise
+    aux: Tensor | None = None  # models built with aux heads: [B, len(AUX_NAMES)] raw predictions; None otherwise
+
+
+# The privileged labels an aux head predicts (Conditional Affordance Learning's spirit), in output order:
+# the expert's target speed and the lead vehicle's speed (both normalised as the speed input), the distance
+# to the stop point behind the lead vehicle (/ LEAD_RANGE, the dataset's "none" value) and a logit of
+# "a red or yellow stop line is near" (docs/training.md, "Inertia countermeasures").
+AUX_NAMES: tuple[str, ...] = ("target_speed", "lead_distance", "lead_speed", "light_ahead")
 
 
 def squash_actions(raw: Tensor) -> Tensor:

@@ -13,7 +13,7 @@ from pathlib import Path
 import torch
 from torch import Tensor, nn
 
-from yawil.models.base import DrivingModel, ModelOutput, resolve_guidance, squash_actions
+from yawil.models.base import AUX_NAMES, DrivingModel, ModelOutput, resolve_guidance, squash_actions
 from yawil.models.layers import LinearAttention, fc_relu, head
 from yawil.models.registry import register
 from yawil.models.resnet import STAGE_CHANNELS, build_resnet34, load_imagenet_weights, resnet_stages
@@ -24,12 +24,21 @@ class YILRatt(DrivingModel):
     """Yaw-guided imitation learning with ResNet34 and attention (the paper's Figure 2)."""
 
     def __init__(self, guidance: str = "yaw", guidance_dim: int | None = None, dropout: float = 0.5,
-                 compute_global: bool = False) -> None:
+                 compute_global: bool = False, speed_input: bool = True, aux: bool = False) -> None:
         """`compute_global`: run layer4 and add g to the compatibility as the paper writes it. Off by default:
         <u, g> is the same at every position and cancels in the softmax, so the outputs are the same up to
-        float rounding and layer4 (about a fifth of the backbone's time) is skipped (docs/models.md)."""
+        float rounding and layer4 (about a fifth of the backbone's time) is skipped (docs/models.md).
+
+        Variants (not the paper's; docs/training.md, "Inertia countermeasures"): `speed_input=False` feeds
+        the measurement layer a zero speed (the inputs stay the same, so agent and export need no change);
+        `aux=True` adds a head on the joined features predicting AUX_NAMES (the expert's target speed, the
+        lead vehicle, a light ahead)."""
         super().__init__(guidance=guidance, guidance_dim=resolve_guidance(guidance, guidance_dim), uses_command=False)
+        for name, v in (("compute_global", compute_global), ("speed_input", speed_input), ("aux", aux)):
+            if not isinstance(v, bool):
+                raise ValueError(f"{name}: expected true or false, got {v!r}")
         self.compute_global = compute_global
+        self.speed_input = speed_input
         global_dim = STAGE_CHANNELS[-1]
         self.backbone = build_resnet34()
         self.attention = nn.ModuleList(LinearAttention(c, global_dim) for c in STAGE_CHANNELS[:3])
@@ -38,6 +47,7 @@ class YILRatt(DrivingModel):
         self.join = fc_relu(feat_dim + 128, (512,))
         self.action = head(512, (256, 256), 3, dropout)
         self.speed_head = head(feat_dim, (256, 256), 1, dropout)
+        self.aux_head = head(512, (256,), len(AUX_NAMES), dropout) if aux else None
 
     def perceive(self, image: Tensor) -> tuple[Tensor, list[Tensor]]:
         """Concatenated attended vectors P(o) [B, 1536] and the three attention maps."""
@@ -60,9 +70,13 @@ class YILRatt(DrivingModel):
         guide, _ = self.check_inputs(image, speed, guidance, command)
         assert guide is not None
         feat, maps = self.perceive(image)
+        if not self.speed_input:
+            speed = torch.zeros_like(speed)
         m = self.measurement(torch.cat([speed, guide], dim=1).to(feat.dtype))
-        raw = self.action(self.join(torch.cat([feat, m], dim=1)))
-        return ModelOutput(squash_actions(raw), self.speed_head(feat), maps, None)
+        joined = self.join(torch.cat([feat, m], dim=1))
+        raw = self.action(joined)
+        aux = self.aux_head(joined) if self.aux_head is not None else None
+        return ModelOutput(squash_actions(raw), self.speed_head(feat), maps, None, aux)
 
     def stage_features(self, image: Tensor) -> list[Tensor]:
         return resnet_stages(self.backbone, self.normalise(image))

@@ -1,0 +1,134 @@
+"""Inertia countermeasures: speed-input dropout, the speed-blind variant, aux heads on the expert's privileged
+labels, driving through a target-speed controller; and the training options they need (init_from, keep_steps)."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from yawil import models
+from yawil.agent import Agent, SpeedControl
+from yawil.checkpoint import Norm, load_checkpoint
+from yawil.data.synthetic import write_synthetic_dataset
+from yawil.train import TrainConfig, aux_loss, drop_speed, train
+
+torch.set_num_threads(1)
+K = 4
+
+
+def _yilratt(**kw: object) -> models.DrivingModel:
+    return models.create("yilratt", seed=0, guidance_dim=K, dropout=0.0, **kw)
+
+
+def _inputs(b: int = 2) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    g = torch.Generator().manual_seed(0)
+    return torch.rand(b, 3, 88, 200, generator=g), torch.rand(b, 1, generator=g), torch.rand(b, K, generator=g)
+
+
+def test_aux_head_and_speed_blind_variant() -> None:
+    image, speed, guide = _inputs()
+    plain = _yilratt().eval()
+    assert plain(image, speed, guidance=guide).aux is None
+    aux = _yilratt(aux=True).eval()
+    out = aux(image, speed, guidance=guide)
+    assert out.aux is not None and tuple(out.aux.shape) == (2, len(models.base.AUX_NAMES))
+    # the aux head is added last: every other weight is initialised as in the plain model
+    for name, value in plain.state_dict().items():
+        assert torch.equal(value, aux.state_dict()[name]), name
+    blind = _yilratt(speed_input=False).eval()
+    with torch.inference_mode():
+        a = blind(image, speed, guidance=guide).actions
+        b = blind(image, speed * 0 + 5.0, guidance=guide).actions
+        c = plain(image, speed * 0 + 5.0, guidance=guide).actions
+    assert torch.equal(a, b) and not torch.allclose(a, c)
+    with pytest.raises(ValueError, match="speed_input"):
+        _yilratt(speed_input="no")
+
+
+def test_speed_dropout_is_seeded_and_has_its_rate() -> None:
+    speed = torch.ones(20_000, 1)
+    g = lambda: torch.Generator().manual_seed(7)  # noqa: E731
+    assert torch.equal(drop_speed(speed, 0.0, g()), speed)
+    assert torch.equal(drop_speed(speed, 1.0, g()), torch.zeros_like(speed))
+    a, b = drop_speed(speed, 0.3, g()), drop_speed(speed, 0.3, g())
+    assert torch.equal(a, b) and abs(float((a == 0).float().mean()) - 0.3) < 0.02
+    with pytest.raises(ValueError, match="speed_dropout"):
+        TrainConfig(speed_dropout=1.5)
+
+
+def test_aux_loss_counts_known_labels_only() -> None:
+    norm = Norm(speed_mean=2.0, speed_std=2.0, guidance_mean=[0.0] * K, guidance_std=[1.0] * K)
+    known = torch.tensor([[4.0, 25.0, 2.0, 1.0]])
+    target_scaled = torch.tensor([[1.0, 0.5, 0.0, 20.0]])  # target speed, distance/50, lead speed, a confident logit
+    assert float(aux_loss(target_scaled, known, norm)) < 1e-6
+    unknown = torch.tensor([[math.nan, math.nan, math.nan, -1.0]])
+    both = torch.cat([known, unknown])
+    pred = torch.cat([target_scaled, torch.full((1, 4), 9.0)])
+    assert float(aux_loss(pred, both, norm)) < 1e-6  # the unknown row's wild predictions cost nothing
+    assert float(aux_loss(torch.zeros(1, 4), unknown, norm)) == 0.0
+    assert float(aux_loss(torch.zeros(1, 4), known, norm)) > 0.1
+
+
+def _data(tmp_path: Path) -> Path:
+    write_synthetic_dataset(tmp_path / "d", episodes=4, frames=12, k=K)
+    return tmp_path / "d"
+
+
+def _cfg(tmp_path: Path, name: str, data: Path, **kw: object) -> TrainConfig:
+    base: dict[str, object] = dict(model="yilratt", data=[str(data)], out=str(tmp_path / name), batch_size=4,
+                                   max_steps=2, progress=False, precision="fp32", val_fraction=0.25,
+                                   model_args={"dropout": 0.0}, augment={"enabled": False})
+    base.update(kw)
+    return TrainConfig(**base)  # type: ignore[arg-type]
+
+
+def test_aux_training_keep_steps_and_init_from(tmp_path: Path) -> None:
+    data = _data(tmp_path)
+    with pytest.raises(ValueError, match="no aux head"):
+        train(_cfg(tmp_path, "noaux", data, aux_weight=1.0))
+    cfg = _cfg(tmp_path, "aux", data, aux_weight=1.0, model_args={"dropout": 0.0, "aux": True}, keep_steps=[1, 2],
+               speed_dropout=0.5, max_steps=3)
+    result = train(cfg)
+    assert result.steps == 3 and math.isfinite(result.best_val)
+    kept = load_checkpoint(tmp_path / "aux" / "step_000001.pt")
+    assert kept["step"] == 1 and (tmp_path / "aux" / "step_000002.pt").is_file()
+    assert not (tmp_path / "aux" / "step_000003.pt").exists()
+    # fine-tuning starts from the weights and the normalisation of the given checkpoint
+    parent = load_checkpoint(tmp_path / "aux" / "last.pt")
+    tuned = _cfg(tmp_path, "tuned", data, aux_weight=1.0, model_args={"dropout": 0.0, "aux": True}, max_steps=1,
+                 lr=1e-12, init_from=str(tmp_path / "aux" / "last.pt"))
+    train(tuned)
+    child = load_checkpoint(tmp_path / "tuned" / "last.pt")
+    assert child["norm"] == parent["norm"]
+    for name, value in parent["state_dict"].items():
+        if "running_" in name or "num_batches" in name:
+            continue  # BatchNorm statistics move with any training step, whatever the learning rate
+        assert torch.allclose(value.float(), child["state_dict"][name].float(), atol=1e-6), name
+    with pytest.raises(ValueError, match="do not fit"):
+        train(_cfg(tmp_path, "misfit", data, init_from=str(tmp_path / "aux" / "last.pt")))  # no aux head here
+    # an agent drives through the target-speed controller only with an aux head
+    agent = Agent.from_checkpoint(tmp_path / "aux" / "last.pt", speed_control=True)
+    assert agent.speed_control is not None
+    with pytest.raises(ValueError, match="aux head"):
+        Agent.from_checkpoint(tmp_path / "misfit" / "last.pt", speed_control=True) if (tmp_path / "misfit" / "last.pt").exists() \
+            else Agent(_yilratt(), Norm(0.0, 1.0, [0.0] * K, [1.0] * K), agent.guidance_config, speed_control=True)
+
+
+def test_speed_control_brakes_for_a_stop_and_starts_for_a_go() -> None:
+    c = SpeedControl()
+    throttle, brake = c(0.0, 5.0)
+    assert throttle == 0.0 and brake > 0.5
+    c.reset()
+    throttle, brake = c(5.0, 0.0)
+    assert throttle > 0.5 and brake == 0.0
+    c.reset()
+    assert c(0.0, 0.1) == (0.0, 1.0)  # standing before a stop: hold
+    c.reset()
+    t1, _ = c(3.0, 2.9)
+    for _ in range(20):
+        t2, _ = c(3.0, 2.9)
+    assert t2 > t1  # the integral closes a steady error

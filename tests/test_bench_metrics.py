@@ -188,9 +188,30 @@ def test_rates_and_counts() -> None:
     assert success_rate(recs) == pytest.approx(100 / 3)
     counts = failure_counts(recs)
     assert counts["success"] == 1 and counts["collision_vehicle"] == 1 and counts["timeout"] == 1
+    assert counts["rear_end"] == 0
+    rear = _rec(0, False, reason="collision_vehicle")
+    rear["collisions"] = [{"type": "vehicle", "rear_end": True}]
+    assert failure_counts([*recs, rear])["rear_end"] == 1
     with pytest.raises(ValueError):
         success_rate([])
     with pytest.raises(ValueError):
         best_of([])
     with pytest.raises(ValueError, match="lacks field"):
         task_success([{"task": "x"}], dynamic=True)
+
+
+def test_rear_end_is_a_vehicle_ahead_heading_our_way() -> None:
+    from types import SimpleNamespace
+
+    from yawil.bench.metrics import is_rear_end
+    from yawil.sim.types import AgentState, Pose
+
+    def obs(x: float, y: float, yaw: float) -> SimpleNamespace:
+        car = AgentState(7, "vehicle", x, y, yaw, 0.0, 4.6, 1.9)
+        return SimpleNamespace(pose=Pose(0.0, 0.0, 0.0), privileged=SimpleNamespace(agents=(car,)))
+
+    assert is_rear_end(obs(4.0, 0.3, 0.1), 7)  # type: ignore[arg-type]
+    assert not is_rear_end(obs(-4.0, 0.0, 0.0), 7)  # type: ignore[arg-type]  # it ran into us
+    assert not is_rear_end(obs(4.0, 0.0, math.pi), 7)  # type: ignore[arg-type]  # head-on
+    assert not is_rear_end(obs(4.0, 0.0, math.pi / 2), 7)  # type: ignore[arg-type]  # crossing
+    assert not is_rear_end(obs(4.0, 0.0, 0.0), 8)  # type: ignore[arg-type]  # unknown id

@@ -101,3 +101,22 @@ def test_bad_agent_and_workers(tmp_path: Path) -> None:
         run_benchmark(eps, AgentSpec("expert"), tmp_path / "b", workers=0, progress=False)
     with pytest.raises(ValueError, match="not to the expert"):
         run_benchmark(eps, AgentSpec("expert", yaw_noise_deg=10), tmp_path / "c", progress=False)
+
+
+def test_the_eval100_preset_is_the_fixed_recipe_comparison_set() -> None:
+    from yawil.bench.cli import _split, apply_preset
+    from yawil.bench.suites import episodes
+    from yawil.cli import build_parser
+
+    args = build_parser().parse_args(["bench", "--preset", "eval100", "--agent", "expert"])
+    apply_preset(args)
+    eps = episodes(args.suite, _split(args.condition), None, args.routes, args.seeds)
+    assert len(eps) == 100 and {e.seed for e in eps} == {0}
+    assert {e.task for e in eps} == {"straight", "one_turn", "navigation", "regular", "dense"}
+    assert {e.condition for e in eps} == {"training", "new-town-weather"}
+    clash = build_parser().parse_args(["bench", "--preset", "eval100", "--seeds", "3"])
+    with pytest.raises(ValueError, match="fixes --seeds"):
+        apply_preset(clash)
+    plain = build_parser().parse_args(["bench"])
+    apply_preset(plain)
+    assert plain.suite == "nocrash"

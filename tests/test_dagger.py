@@ -11,7 +11,8 @@ import numpy as np
 import pytest
 from test_collect import LineWorld, small_cfg
 
-from yawil.dagger import BENCH_WORLD_SEED_LIMIT, BenchRoutes, DaggerConfig, DaggerRun
+from yawil.bench.select import BenchmarkRoutes, validation_episodes
+from yawil.dagger import BENCH_WORLD_SEED_LIMIT, DaggerConfig, DaggerRun
 from yawil.data.collect import CollectConfig, Learner, OnPolicy, collect, plan_episode, run_episode
 from yawil.data.manifest import read_manifest
 from yawil.data.reader import open_episode
@@ -111,7 +112,7 @@ def test_dagger_world_seeds_and_routes_are_disjoint_from_the_benchmarks() -> Non
     cfg = CollectConfig()
     seeds = [plan_episode(cfg, s, i, BENCH_WORLD_SEED_LIMIT).world_seed for s in (1000, 2000, 1001) for i in range(300)]
     assert min(seeds) >= BENCH_WORLD_SEED_LIMIT
-    reject = BenchRoutes("town01")
+    reject = BenchmarkRoutes("town01")
     assert len(reject.ends) > 0
     for ep in bench:
         if ep.town != "town01":
@@ -119,6 +120,11 @@ def test_dagger_world_seeds_and_routes_are_disjoint_from_the_benchmarks() -> Non
         s, g = ep.route.start, ep.route.goal
         assert reject(SimpleNamespace(xy=np.array([[s.x, s.y], [g.x, g.y]])))
         assert not reject(SimpleNamespace(xy=np.array([[s.x + 40.0, s.y], [g.x, g.y]])))
+    # the closed-loop validation set of `yawil select` keeps off them too
+    val = validation_episodes(routes=2)
+    assert len(val) == 8 and min(ep.world_seed for ep in val) >= BENCH_WORLD_SEED_LIMIT
+    assert not any(reject.matches((e.route.start.x, e.route.start.y), (e.route.goal.x, e.route.goal.y)) for e in val)
+    assert {ep.weather for ep in val} <= set(CollectConfig().weathers)
 
 
 def test_a_rejecting_town_is_an_error_not_a_hang(tmp_path: Path) -> None:
@@ -161,3 +167,34 @@ def test_a_tiny_dagger_run_end_to_end_and_resumed(tmp_path: Path) -> None:
     assert sum("skipped" in line for line in logs) == 4
     with pytest.raises(ValueError, match="other settings"):
         DaggerRun(out, DaggerConfig(**{**cfg.to_dict(), "beta": (0.5,)}), log=lambda m: None).run()
+
+
+def test_select_picks_the_checkpoint_that_drives_best(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The ranking of `yawil select` (the driving itself is the benchmark runner's, tested there)."""
+    from test_agent import checkpoint
+
+    import yawil.bench.runner as runner
+    from yawil.bench.records import EpisodeLog
+    from yawil.bench.select import select_checkpoint
+
+    paths = []
+    for name in ("a", "b", "c"):
+        (tmp_path / name).mkdir()
+        p, _ = checkpoint(tmp_path / name, "yaw-guided")
+        paths.append(p)
+    wins = {"a": 1, "b": 2, "c": 2}
+    crashes = {"a": 0, "b": 1, "c": 0}
+
+    def fake(eps, spec, out, **kw):  # type: ignore[no-untyped-def]
+        who = Path(spec.agent).parent.name
+        with EpisodeLog(out) as log:
+            for i, ep in enumerate(eps):
+                log.append({"task": ep.task, "condition": ep.condition, "route_id": ep.route_id, "seed": ep.seed,
+                            "success": i < wins[who], "km_driven": 0.1,
+                            "collisions": [{"type": "vehicle"}] if i == len(eps) - 1 and crashes[who] else []})
+
+    monkeypatch.setattr(runner, "run_benchmark", fake)
+    result = select_checkpoint(paths, tmp_path / "sel", routes=1, progress=False)
+    assert result["selected"] == str(paths[2])  # b and c drive 2 of 4, c without a collision
+    assert [r["successes"] for r in result["candidates"]] == [1, 2, 2]
+    assert json.loads((tmp_path / "sel" / "selection.json").read_text())["selected"] == str(paths[2])

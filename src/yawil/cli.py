@@ -22,6 +22,7 @@ COMMANDS: dict[str, str] = {
     "dagger": "yawil.dagger",
     "export": "yawil.export",
     "bench": "yawil.bench.cli",
+    "select": "yawil.bench.select",
     "report": "yawil.bench.report_cli",
     "experiment": "yawil.bench.experiments_cli",
     "explain": "yawil.explain_cli",

@@ -13,7 +13,7 @@ expert labels any state for ~0.5 ms, so every visited frame is a label.
 
 Every stage is resumable at any kill: collection per episode (the manifest), training from `last.pt`, and a
 stage marker per finished stage under OUT/stages. The benchmark's world seeds and routes are never driven
-(`BENCH_WORLD_SEED_LIMIT`, `BenchRoutes`).
+(`BENCH_WORLD_SEED_LIMIT`, `yawil.bench.select.BenchmarkRoutes`).
 """
 
 from __future__ import annotations
@@ -36,7 +36,6 @@ TRAIN_MODES = ("finetune", "scratch")
 # Benchmark episodes use world seed 1000 * seed + route id (yawil.bench.suites.Episode.world_seed), far below this.
 BENCH_WORLD_SEED_LIMIT = 1_000_000
 ROUND_SEED_STRIDE = 1000  # round r's episodes are collected with seed + 1000 * r: ids unique across the aggregate
-SAME_ROUTE_M = 10.0  # a drawn route whose start and goal both lie this close to a benchmark route's is that route
 
 
 @dataclass(frozen=True)
@@ -94,30 +93,6 @@ class DaggerConfig:
 
 def _is_int(v: Any) -> bool:
     return isinstance(v, int) and not isinstance(v, bool)
-
-
-# ----------------------------------------------------------------------------------------------- routes
-class BenchRoutes:
-    """Turns down a drawn route that is one of the benchmark's (same start and goal within SAME_ROUTE_M)."""
-
-    def __init__(self, town: str) -> None:
-        from yawil.bench.suites import load_routes
-
-        try:
-            tasks = load_routes(town)
-        except (FileNotFoundError, ValueError):
-            tasks = {}  # a town without benchmark routes (a custom layout) has nothing to avoid
-        ends = [(r.start.x, r.start.y, r.goal.x, r.goal.y) for routes in tasks.values() for r in routes]
-        self.ends = np.asarray(ends, dtype=np.float64).reshape(-1, 4)
-
-    def __call__(self, route: Any) -> bool:
-        if not len(self.ends):
-            return False
-        xy = np.asarray(route.xy, dtype=np.float64)
-        here = np.array([xy[0, 0], xy[0, 1], xy[-1, 0], xy[-1, 1]])
-        d_start = np.hypot(*(self.ends[:, :2] - here[:2]).T)
-        d_goal = np.hypot(*(self.ends[:, 2:] - here[2:]).T)
-        return bool(np.any((d_start < SAME_ROUTE_M) & (d_goal < SAME_ROUTE_M)))
 
 
 def load_learner(checkpoint: str, threads: int = 1) -> Any:
@@ -212,6 +187,7 @@ class DaggerRun:
         return {"frames": s.dataset_frames, "episodes": s.episodes_written + s.episodes_skipped}
 
     def collect_round(self, r: int) -> dict[str, Any]:
+        from yawil.bench.select import BenchmarkRoutes
         from yawil.data.collect import Learner, OnPolicy, collect
 
         cfg = self.cfg
@@ -221,7 +197,7 @@ class DaggerRun:
                             takeover_stall=cfg.takeover_stall, takeover_seconds=cfg.takeover_seconds)
         learner = Learner(factory=functools.partial(load_learner, str(policy), 1), onpolicy=onpolicy,
                           identity=str(policy.resolve()), min_world_seed=BENCH_WORLD_SEED_LIMIT,
-                          reject_route=BenchRoutes(cfg.town))
+                          reject_route=BenchmarkRoutes(cfg.town))
         # No steering noise (the learner makes its own mistakes); the second before a collision is not a label.
         s = collect(self.round_data(r), town=cfg.town, weathers="train", frames=cfg.round_frames, workers=cfg.workers,
                     seed=cfg.seed + ROUND_SEED_STRIDE * r, progress=self.progress, learner=learner, desc=f"round {r}",

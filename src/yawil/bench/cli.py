@@ -20,7 +20,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         "`routes` to generate the route files, `validate` to check them with the current planner.",
     )
     p.add_argument("action", nargs="?", default="run", choices=("run", "routes", "validate"))
-    p.add_argument("--suite", default="nocrash", help="corl2017 | nocrash | all | square (default nocrash)")
+    p.add_argument("--suite", default=None, help="corl2017 | nocrash | all | square (default nocrash)")
+    p.add_argument("--preset", choices=sorted(PRESETS), default=None,
+                   help="a fixed episode set: eval100 = all five tasks x 10 routes x both conditions, seed 0 "
+                        "(100 episodes, for comparing training recipes; docs/training.md)")
     p.add_argument(
         "--condition",
         action="append",
@@ -58,6 +61,24 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     return p
 
 
+# Fixed episode sets, each one documented command: the settings it fixes.
+PRESETS: dict[str, dict[str, Any]] = {
+    "eval100": {"suite": "all", "condition": ["training,new-town-weather"], "routes": "0:10", "seeds": 1},
+}
+
+
+def apply_preset(args: argparse.Namespace) -> None:
+    """Fill in a preset's settings; one also given on the command line is an error (which would win?)."""
+    if args.preset is None:
+        if args.suite is None:
+            args.suite = "nocrash"
+        return
+    for key, value in PRESETS[args.preset].items():
+        if getattr(args, key) is not None:
+            raise ValueError(f"--preset {args.preset} fixes --{key} ({value}); do not give it too")
+        setattr(args, key, value)
+
+
 def _split(values: list[str] | None) -> list[str] | None:
     if not values:
         return None
@@ -90,6 +111,7 @@ def run(args: argparse.Namespace) -> int:
 def _run_suite(args: argparse.Namespace) -> int:
     from pathlib import Path
 
+    apply_preset(args)
     from yawil.bench.runner import AgentSpec, run_benchmark
     from yawil.bench.suites import episodes
 

@@ -108,6 +108,7 @@ class EpisodeTracker:
                         "t": round(ev.time, 2),
                         "x": round(ev.x, 2),
                         "y": round(ev.y, 2),
+                        "rear_end": is_rear_end(obs, ev.other_id),
                     }
                 )
             elif ev.kind == EventKind.LANE_INVASION:
@@ -160,6 +161,23 @@ class EpisodeTracker:
             "final_distance_m": round(self.final_distance_m, 3),
             "trajectory": self.trajectory,
         }
+
+
+REAR_END_DEG = 45.0  # the other vehicle heads within this of the ego's heading
+
+
+def is_rear_end(obs: Observation, other_id: int | None) -> bool:
+    """The ego ran into the back of a vehicle: the other is ahead of the ego's centre and heads its way.
+
+    The learned agents' main failure (docs/training.md), so the failure tables count it apart.
+    """
+    other = next((a for a in obs.privileged.agents if a.id == other_id and a.kind == "vehicle"), None)
+    if other is None:
+        return False
+    c, s = math.cos(obs.pose.yaw), math.sin(obs.pose.yaw)
+    ahead = c * (other.x - obs.pose.x) + s * (other.y - obs.pose.y)
+    diff = abs(math.remainder(other.yaw - obs.pose.yaw, math.tau))
+    return ahead > 0.0 and diff < math.radians(REAR_END_DEG)
 
 
 def subsample_route(xy: np.ndarray, every: int = ROUTE_EVERY_M) -> list[list[float]]:
@@ -272,8 +290,11 @@ def task_violations(records: Iterable[Mapping[str, Any]]) -> tuple[Stat, Stat]:
 
 def failure_counts(records: Iterable[Mapping[str, Any]]) -> dict[str, int]:
     """How many episodes ended by each reason, plus 'success'."""
-    out = {"success": 0, **{r: 0 for r in FAILURE_REASONS}}
+    out = {"success": 0, **{r: 0 for r in FAILURE_REASONS}, "rear_end": 0}
     for rec in records:
         key = "success" if rec["success"] else str(rec.get("reason"))
         out[key] = out.get(key, 0) + 1
+        cols = rec.get("collisions") or []
+        if not rec["success"] and cols and cols[0].get("rear_end"):
+            out["rear_end"] += 1  # also counted under its reason (vehicle)
     return out

@@ -154,9 +154,9 @@ def outcome_table(sets: Sequence[ResultSet]) -> Table:
                 rows.append(
                     [CONDITIONS[c].title, TASKS[t].title, rs.label, str(len(recs)), str(counts["success"])]
                     + [str(counts.get(k, 0)) for k in FAILURE_REASONS]
-                    + [f"{km:.1f}"]
+                    + [str(counts["rear_end"]), f"{km:.1f}"]
                 )
-    header = ["Condition", "Task", "Agent", "Episodes", "Success", *FAILURE_REASONS, "km driven"]
+    header = ["Condition", "Task", "Agent", "Episodes", "Success", *FAILURE_REASONS, "of which rear-end", "km driven"]
     return Table("Episode outcomes (all seeds)", header, rows)
 
 

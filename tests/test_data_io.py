@@ -139,3 +139,53 @@ def test_synthetic_dataset_is_deterministic(tmp_path: Path) -> None:
         np.testing.assert_array_equal(ra.images(slice(None)), rb.images(slice(None)))
         for name, col in ra.labels().items():
             np.testing.assert_array_equal(col, rb.labels()[name])
+
+
+def _downgrade_to_schema_1(root: Path) -> None:
+    """What a schema-1 dataset looks like: no V2 fields, version 1 in the files and the manifest."""
+    from yawil.data.schema import V2_FIELDS
+
+    for path in sorted((root / "episodes").glob("ep_*.h5")):
+        with h5py.File(path, "r+") as f:
+            for name in V2_FIELDS:
+                del f[name]
+            f.attrs["schema_version"] = 1
+    raw = json.loads((root / "manifest.json").read_text())
+    raw["schema_version"] = 1
+    (root / "manifest.json").write_text(json.dumps(raw))
+
+
+def test_schema_1_datasets_still_read_and_train_but_take_no_new_episodes(tmp_path: Path) -> None:
+    from yawil.data.check import check_dataset
+    from yawil.data.dataset import DrivingDataset
+
+    write_synthetic_dataset(tmp_path / "old", episodes=2, frames=10, k=K)
+    _downgrade_to_schema_1(tmp_path / "old")
+    m = read_manifest(tmp_path / "old")
+    assert m.schema_version == 1
+    with open_episode(m.path_of(m.episodes[0])) as ep:
+        labels = ep.labels()
+        rec = ep[0]
+    assert (labels["driver"] == 0).all() and (labels["round"] == 0).all() and (labels["speed_reason"] == -1).all()
+    assert np.isnan(labels["target_speed"]).all() and np.isnan(rec.lead_distance) and rec.light_ahead == -1
+    assert check_dataset(tmp_path / "old").ok
+    ds = DrivingDataset(tmp_path / "old")
+    sample = ds[0]
+    assert torch_isnan_all(sample["privileged"][:3]) and float(sample["privileged"][3]) == -1.0
+    with pytest.raises(ValueError, match="schema-1 dataset"):
+        DatasetWriter(tmp_path / "old", m.config)
+
+
+def torch_isnan_all(t: object) -> bool:
+    import torch
+
+    return bool(torch.isnan(t).all())  # type: ignore[arg-type]
+
+
+def test_privileged_fields_are_validated(tmp_path: Path) -> None:
+    rec = synthetic_episode(np.random.default_rng(0), 1, K)[0]
+    for field, bad in (("driver", 3), ("round", -1), ("speed_reason", 8), ("light_ahead", 2), ("target_speed", -1.0),
+                       ("lead_distance", float("inf"))):
+        with pytest.raises(ValueError, match=field):
+            replace(rec, **{field: bad}).validate()
+    replace(rec, target_speed=float("nan"), driver=2, round=3).validate()

@@ -9,8 +9,8 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
-from test_collect import LineWorld, small_cfg
 
+from test_collect import LineWorld, small_cfg
 from yawil.bench.select import BenchmarkRoutes, validation_episodes
 from yawil.dagger import BENCH_WORLD_SEED_LIMIT, DaggerConfig, DaggerRun
 from yawil.data.collect import CollectConfig, Learner, OnPolicy, collect, plan_episode, run_episode
@@ -171,9 +171,8 @@ def test_a_tiny_dagger_run_end_to_end_and_resumed(tmp_path: Path) -> None:
 
 def test_select_picks_the_checkpoint_that_drives_best(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     """The ranking of `yawil select` (the driving itself is the benchmark runner's, tested there)."""
-    from test_agent import checkpoint
-
     import yawil.bench.runner as runner
+    from test_agent import checkpoint
     from yawil.bench.records import EpisodeLog
     from yawil.bench.select import select_checkpoint
 

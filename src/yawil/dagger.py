@@ -28,8 +28,6 @@ from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
-import numpy as np
-
 from yawil.stages import run_stage
 
 TRAIN_MODES = ("finetune", "scratch")

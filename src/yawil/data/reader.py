@@ -117,23 +117,9 @@ class EpisodeReader:
             raise IndexError(f"{self.path}: frame row {i} out of range for {n} rows")
         i %= n
         h = self._h5
-        return FrameRecord(
-            image=np.asarray(h["image"][i]),
-            steer=float(h["steer"][i]),
-            throttle=float(h["throttle"][i]),
-            brake=float(h["brake"][i]),
-            speed=float(h["speed"][i]),
-            command=int(h["command"][i]),
-            guidance_yaw=np.asarray(h["guidance_yaw"][i]),
-            guidance_xy=np.asarray(h["guidance_xy"][i]),
-            guidance_sim_yaw=np.asarray(h["guidance_sim_yaw"][i]),
-            pose=tuple(float(v) for v in h["pose"][i]),  # type: ignore[arg-type]
-            frame=int(h["frame"][i]),
-            noise=bool(h["noise"][i]),
-            lane_follow_turn=bool(h["lane_follow_turn"][i]),
-            **{name: (float if field_dtype(name).kind == "f" else int)(h[name][i] if name in h else default)
-               for name, default in V2_FIELDS.items()},
-        )
+        row = {name: h[name][i : i + 1] if name in h else np.full(1, V2_FIELDS[name], dtype=field_dtype(name))
+               for name in LABEL_FIELDS}
+        return FrameRecord.from_labels(np.asarray(h["image"][i]), row, 0)
 
     def close(self) -> None:
         self._h5.close()

@@ -138,6 +138,24 @@ class FrameRecord:
     lead_speed: float = math.nan
     light_ahead: int = -1
 
+    @classmethod
+    def from_labels(cls, image: np.ndarray, labels: dict[str, np.ndarray], r: int) -> FrameRecord:
+        """Row `r` of an episode's label columns (as `EpisodeReader.labels()` gives them) with its image."""
+        def scalar(name: str) -> Any:
+            v = labels[name][r]
+            return float(v) if field_dtype(name).kind == "f" else int(v)
+
+        return cls(
+            image=image,
+            **{name: scalar(name) for name in SCALAR_FIELDS if name not in ("noise", "lane_follow_turn")},
+            noise=bool(labels["noise"][r]),
+            lane_follow_turn=bool(labels["lane_follow_turn"][r]),
+            guidance_yaw=np.asarray(labels["guidance_yaw"][r]),
+            guidance_xy=np.asarray(labels["guidance_xy"][r]),
+            guidance_sim_yaw=np.asarray(labels["guidance_sim_yaw"][r]),
+            pose=tuple(float(v) for v in labels["pose"][r]),  # type: ignore[arg-type]
+        )
+
     @property
     def k(self) -> int:
         return int(np.asarray(self.guidance_yaw).shape[0]) if np.ndim(self.guidance_yaw) == 1 else -1

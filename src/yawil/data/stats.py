@@ -19,7 +19,7 @@ import numpy as np
 
 from yawil.data.dataset import as_roots, load_episode_labels, manifest_episodes
 from yawil.data.manifest import _umask
-from yawil.data.schema import COMMAND_NAMES
+from yawil.data.schema import COMMAND_NAMES, DRIVERS, SPEED_REASONS
 
 PathLike = str | os.PathLike[str]
 BINS = {"steer": np.linspace(-1.0, 1.0, 41), "throttle": np.linspace(0.0, 1.0, 21), "brake": np.linspace(0.0, 1.0, 21)}
@@ -36,6 +36,9 @@ class DatasetStats:
     histograms: dict[str, np.ndarray] = field(default_factory=dict)  # name -> counts over BINS[name]
     means: dict[str, float] = field(default_factory=dict)
     skipped: list[str] = field(default_factory=list)
+    by_driver: dict[str, int] = field(default_factory=dict)  # DRIVERS name -> frames (schema 2)
+    by_round: dict[int, int] = field(default_factory=dict)  # DAgger round -> frames
+    by_reason: dict[str, int] = field(default_factory=dict)  # what set the expert's target speed; "unknown"
 
     def by_option(self) -> dict[str, int]:
         return {o: sum(w.get(o, 0) for w in self.by_weather_option.values()) for o in OPTION_ORDER}
@@ -53,6 +56,10 @@ class DatasetStats:
             f"noisy frames {self.noise_frames} ({100 * self.noise_frames / f:.1f}%)"
         )
         out.append("means: " + ", ".join(f"{k} {v:.3f}" for k, v in self.means.items()))
+        out.append("by driver: " + ", ".join(f"{d} {n} ({100 * n / f:.1f}%)" for d, n in self.by_driver.items() if n)
+                   + "; by round: " + ", ".join(f"{r}: {n}" for r, n in sorted(self.by_round.items())))
+        out.append("expert's target speed set by: "
+                   + ", ".join(f"{r} {n} ({100 * n / f:.1f}%)" for r, n in self.by_reason.items() if n))
         return out
 
 
@@ -74,6 +81,12 @@ def compute_stats(roots: PathLike | Sequence[PathLike]) -> DatasetStats:
             per[name] += int(np.sum(lab["command"] == value))
         st.lane_follow_turn_frames += int(lab["lane_follow_turn"].sum())
         st.noise_frames += int(lab["noise"].sum())
+        for i, name in enumerate(DRIVERS):
+            st.by_driver[name] = st.by_driver.get(name, 0) + int(np.sum(lab["driver"] == i))
+        for r, n in zip(*np.unique(lab["round"], return_counts=True), strict=True):
+            st.by_round[int(r)] = st.by_round.get(int(r), 0) + int(n)
+        for i, name in enumerate((*SPEED_REASONS, "unknown")):
+            st.by_reason[name] = st.by_reason.get(name, 0) + int(np.sum(lab["speed_reason"] == (i if i < len(SPEED_REASONS) else -1)))
         for k, b in BINS.items():
             st.histograms[k] += np.histogram(np.clip(lab[k], b[0], b[-1]), bins=b)[0]
         for k in sums:

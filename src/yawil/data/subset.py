@@ -124,26 +124,8 @@ def _copy_episode(w: DatasetWriter, path: Path, keep: np.ndarray, labels: dict[s
                 rows = keep[lo : lo + BLOCK]
                 images = src.images(slice(int(rows[0]), int(rows[-1]) + 1))[rows - rows[0]]
                 for img, r in zip(images, rows, strict=True):
-                    ep.append(_record(img, labels, int(r)))
+                    ep.append(FrameRecord.from_labels(img, labels, int(r)))
             ep.commit(str(a["outcome"]))
-
-
-def _record(image: np.ndarray, lab: dict[str, np.ndarray], r: int) -> FrameRecord:
-    return FrameRecord(
-        image=image,
-        steer=float(lab["steer"][r]),
-        throttle=float(lab["throttle"][r]),
-        brake=float(lab["brake"][r]),
-        speed=float(lab["speed"][r]),
-        command=int(lab["command"][r]),
-        guidance_yaw=lab["guidance_yaw"][r],
-        guidance_xy=lab["guidance_xy"][r],
-        guidance_sim_yaw=lab["guidance_sim_yaw"][r],
-        pose=(float(lab["pose"][r, 0]), float(lab["pose"][r, 1]), float(lab["pose"][r, 2])),
-        frame=int(lab["frame"][r]),
-        noise=bool(lab["noise"][r]),
-        lane_follow_turn=bool(lab["lane_follow_turn"][r]),
-    )
 
 
 _TMP_RE = re.compile(r"^\.(.+)\.tmp-(\d+)$")

@@ -160,6 +160,27 @@ def outcome_table(sets: Sequence[ResultSet]) -> Table:
     return Table("Episode outcomes (all seeds)", header, rows)
 
 
+def summary_table(sets: Sequence[ResultSet]) -> Table:
+    """One row per agent over all its episodes: the figures a recipe comparison needs (docs/experiments.md)."""
+    from yawil.bench.metrics import lane_violations_per_km, light_violation_ratio
+
+    rows = []
+    for rs in sets:
+        if not rs.records:
+            continue
+        counts = failure_counts(rs.records)
+        lanes, lights = lane_violations_per_km(rs.records), light_violation_ratio(rs.records)
+        rows.append(
+            [rs.label, str(len(rs.records)), str(counts["success"])]
+            + [str(counts.get(k, 0)) for k in FAILURE_REASONS]
+            + [str(counts["rear_end"]), f"{lanes:.2f}", f"{lights:.2f}"]
+        )
+    header = ["Agent", "Episodes", "Success", *FAILURE_REASONS, "of which rear-end",
+              "lane violations / km (successful)", "red-light ratio (successful)"]
+    return Table("Summary over all episodes", header, rows,
+                 "Violations pooled over the successful episodes of every task and condition.")
+
+
 # ----- plots -------------------------------------------------------------------------------------------------
 
 
@@ -289,7 +310,7 @@ def write_report(
     _unique_labels(sets)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    tables = [success_table(sets), violations_table(sets), outcome_table(sets)]
+    tables = [success_table(sets), violations_table(sets), outcome_table(sets), summary_table(sets)]
     images: list[tuple[str, str, bytes]] = [("success.png", "Success rate per task", success_plot(sets))]
     conds, _ = _present(sets)
     for c in conds:

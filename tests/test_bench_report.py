@@ -6,7 +6,7 @@ import json
 from pathlib import Path
 
 from yawil.bench.records import EpisodeLog, check_run_info
-from yawil.bench.report import load_results, success_table, violations_table, write_report
+from yawil.bench.report import load_results, success_table, summary_table, violations_table, write_report
 from yawil.cli import main
 
 
@@ -43,8 +43,15 @@ def test_tables_and_files(tmp_path: Path) -> None:
     assert lane_dense[2] == "2.00 ± 0.00"  # 1 violation per 0.5 km, successful episodes only
     light_dense_b = [r for r in t4.rows if r[0].startswith("Traffic") and r[1] == "Nav. (Dense)"][0][3]
     assert light_dense_b == "0.38 ± 0.12"  # seed 0: no success, undefined; seeds 1, 2: 0.25, 0.5
+    summ = summary_table(sets)
+    # yilratt: 2 x (9 of 20 straight + 3 of 12 dense) = 24 of 64; its violations over the successful ones
+    assert summ.rows[1][:3] == ["yilratt", "64", "24"] and summ.rows[1][-2] == "2.00"
+    from yawil.bench.metrics import FAILURE_REASONS
+
+    assert summ.rows[1][3 + FAILURE_REASONS.index("collision_vehicle")] == "40"  # every failure here is one
     paths = write_report([a, b], tmp_path / "rep")
     md = paths["report.md"].read_text()
+    assert "Summary over all episodes" in md
     assert "Table III" in md and "Table IV" in md and "success.png" in md
     page = paths["report.html"].read_text()
     assert page.count("data:image/png;base64,") >= 2 and "<table>" in page and "src='success.png'" not in page

@@ -120,3 +120,14 @@ def test_the_eval100_preset_is_the_fixed_recipe_comparison_set() -> None:
     plain = build_parser().parse_args(["bench"])
     apply_preset(plain)
     assert plain.suite == "nocrash"
+
+
+def test_record_writes_a_video_per_episode(tmp_path: Path) -> None:
+    """`yawil bench --record` (it crashed on the bird's-eye map's bare Figure: issue "Every door a clear error")."""
+    from yawil.bench.runner import AgentSpec, run_benchmark
+    from yawil.bench.suites import episodes
+
+    eps = episodes("corl2017", ["training"], ["straight"], routes="0:1", seeds=1)
+    run_benchmark(eps, AgentSpec("expert"), tmp_path / "r", record=True, progress=False)
+    videos = list((tmp_path / "r" / "videos").iterdir())
+    assert len(videos) == 1 and videos[0].stat().st_size > 10_000

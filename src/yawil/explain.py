@@ -147,7 +147,15 @@ def grid_figure(items: Sequence[Explained], alpha: float = DEFAULT_ALPHA, path: 
 
 
 def figure_to_array(fig) -> np.ndarray:  # type: ignore[no-untyped-def]
-    """RGB uint8 pixels of a drawn matplotlib figure (for video frames)."""
+    """RGB uint8 pixels of a drawn matplotlib figure (for video frames).
+
+    A bare `matplotlib.figure.Figure` (the bird's-eye map) has a FigureCanvasBase that cannot render:
+    it gets an Agg canvas here, as pyplot would give it.
+    """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    if not isinstance(fig.canvas, FigureCanvasAgg):
+        FigureCanvasAgg(fig)
     fig.canvas.draw()
     rgba = np.asarray(fig.canvas.buffer_rgba())
     return np.ascontiguousarray(rgba[..., :3])

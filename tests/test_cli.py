@@ -37,3 +37,11 @@ def test_no_command_prints_help_and_fails(capsys: pytest.CaptureFixture[str]) ->
 def test_console_script_runs() -> None:
     out = subprocess.run([sys.executable, "-m", "yawil.cli", "--version"], capture_output=True, text=True, check=True)
     assert out.stdout.startswith("yawil ")
+
+
+def test_bad_input_is_one_line_not_a_traceback(capsys) -> None:  # type: ignore[no-untyped-def]
+    from yawil.cli import main
+
+    assert main(["sim", "view", "--town", "town02", "--weather", "Rainy"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "Rainy" in err[0] and err[0].startswith("yawil sim:")

@@ -133,3 +133,4 @@ def test_random_routes_respect_min_length_and_given_start() -> None:
     start = Pose(float(obs.route.xy[0, 0]), float(obs.route.xy[0, 1]), float(obs.route.lane_yaw[0]))
     obs2 = w.reset(Scenario(town="town02", start=start, min_route_length=100.0, camera=False), seed=12)
     assert np.allclose(obs2.route.xy[0], obs.route.xy[0], atol=0.5)
+

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import argparse
 import importlib
+import os
 import sys
 from collections.abc import Sequence
 
@@ -67,6 +68,12 @@ def main(argv: Sequence[str] | None = None) -> int:
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
+    except (ValueError, OSError) as err:
+        # Bad input (a value, a file, a full disk) is one line naming it; YAWIL_DEBUG=1 shows the traceback.
+        if os.environ.get("YAWIL_DEBUG"):
+            raise
+        print(f"yawil {args.command}: {err}", file=sys.stderr)
+        return 2
 
 
 if __name__ == "__main__":

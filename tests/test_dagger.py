@@ -197,3 +197,17 @@ def test_select_picks_the_checkpoint_that_drives_best(tmp_path: Path, monkeypatc
     assert result["selected"] == str(paths[2])  # b and c drive 2 of 4, c without a collision
     assert [r["successes"] for r in result["candidates"]] == [1, 2, 2]
     assert json.loads((tmp_path / "sel" / "selection.json").read_text())["selected"] == str(paths[2])
+
+
+def test_dagger_cli_refuses_bad_options_in_one_line(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from yawil.cli import main
+
+    for argv, text in (
+        (["--beta", "0.5,x"], "--beta"),
+        (["--train-arg", "nonsense=1"], "--train-arg"),
+        (["--train-arg", "speed_dropout=2"], "speed_dropout"),
+        (["--round0", str(tmp_path / "none.pt")], "round0"),
+    ):
+        with pytest.raises(SystemExit) as err:
+            main(["dagger", "--out", str(tmp_path / "o"), *argv])
+        assert text in str(err.value) and "\n" not in str(err.value)

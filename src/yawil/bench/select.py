@@ -93,7 +93,7 @@ def select_checkpoint(checkpoints: Sequence[Path], out: Path, routes: int = 3, w
     if len(set(labels)) != len(labels):
         raise ValueError(f"select: candidates must differ in folder or file name, got {labels}")
     eps = validation_episodes(routes=routes)
-    rows = []
+    rows: list[dict[str, Any]] = []
     for path, label in zip(checkpoints, labels, strict=True):
         ck = load_checkpoint(path, map_location="cpu")
         spec = AgentSpec(str(path), speed_control=speed_control).validate()

@@ -20,7 +20,7 @@ from collections import deque
 from collections.abc import Callable, Iterator, Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any
+from typing import Any, Protocol
 
 import numpy as np
 
@@ -130,7 +130,7 @@ class OnPolicy:
                 raise ValueError(f"OnPolicy.{name} must be a finite number >= 0, got {v!r}")
 
 
-class Driver:
+class Driver(Protocol):
     """The duck type of a learner: what `yawil.agent.Agent` offers."""
 
     def reset(self) -> None: ...

@@ -140,3 +140,21 @@ def test_bad_observation_and_checkpoint(tmp_path: Path) -> None:
         agent.act(Observation(**{**obs.__dict__, "image": obs.image.astype(np.float32)}))
     with pytest.raises(FileNotFoundError):
         Agent.from_checkpoint(tmp_path / "none.pt")
+
+
+def test_speed_control_drives_the_predicted_target_speed(tmp_path: Path) -> None:
+    """With an aux head and speed_control, throttle and brake follow the head's target speed, not the net's."""
+    path, norm = checkpoint(tmp_path, "yilratt", guidance_dim=K, dropout=0.0, aux=True)
+    plain = Agent.from_checkpoint(path, precision="fp32")
+    ctl = Agent.from_checkpoint(path, precision="fp32", speed_control=True)
+    obs = observation(speed=3.0)
+    plain.reset()
+    ctl.reset()
+    c0, c1 = plain.act(obs), ctl.act(obs)
+    assert plain.last is not None and ctl.last is not None and ctl.last.target_speed is not None
+    assert c0.steer == pytest.approx(c1.steer)  # steering stays the net's
+    target = ctl.last.target_speed
+    t_want, b_want = type(ctl.speed_control)()(target, 3.0)  # type: ignore[misc]
+    assert c1.throttle == pytest.approx(t_want) and c1.brake == pytest.approx(b_want if b_want >= 0.1 else 0.0)
+    with pytest.raises(ValueError, match="aux head"):
+        Agent.from_checkpoint(checkpoint(tmp_path, "yaw-guided", guidance_dim=K)[0], speed_control=True)

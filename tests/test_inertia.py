@@ -131,3 +131,18 @@ def test_speed_control_brakes_for_a_stop_and_starts_for_a_go() -> None:
     for _ in range(20):
         t2, _ = c(3.0, 2.9)
     assert t2 > t1  # the integral closes a steady error
+
+
+def test_bce_brake_loss_learns_the_mean_where_l1_learns_the_median() -> None:
+    from yawil.train import bce_of_probabilities
+
+    target = torch.tensor([0.0] * 9 + [1.0])  # braking on one frame in ten, the image the same
+    grid = torch.linspace(0.01, 0.99, 99)
+    bce = torch.stack([bce_of_probabilities(torch.full((10,), float(p)), target) for p in grid])
+    l1 = torch.stack([(torch.full((10,), float(p)) - target).abs().mean() for p in grid])
+    assert float(grid[int(bce.argmin())]) == pytest.approx(0.1, abs=0.011)  # the mean: brakes above 0.1
+    assert float(grid[int(l1.argmin())]) == pytest.approx(0.01)  # the median: never brakes
+    with pytest.raises(ValueError, match="brake_loss"):
+        TrainConfig(brake_loss="hinge")
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        assert torch.isfinite(bce_of_probabilities(torch.tensor([0.0, 1.0]), torch.tensor([0.0, 1.0])))

@@ -154,7 +154,7 @@ def test_train_end_to_end_and_resume_equivalence(tmp_path: Path) -> None:
     rows = list(csv.DictReader((out / "metrics.csv").open()))
     assert [float(r["epoch"]) for r in rows] == [1.0, 2.0]
     assert float(rows[1]["train_loss"]) < float(rows[0]["train_loss"])
-    assert {"val_l1_steer", "val_l1_throttle", "val_l1_brake", "val_l1_speed", "lr", "time"} <= set(rows[0])
+    assert {"val_l1_steer", "val_l1_throttle", "val_l1_brake", "val_l1_speed", "val_brake_recall", "lr", "time"} <= set(rows[0])
     assert yaml.safe_load((out / "config.yaml").read_text())["batch_size"] == 16
     ckpt = load_checkpoint(out / "last.pt")
     assert set(REQUIRED_KEYS) <= set(ckpt) and ckpt["epoch"] == 2 and ckpt["step"] == 4

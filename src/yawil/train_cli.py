@@ -40,6 +40,8 @@ _OPTIONS: tuple[tuple[str, str, Any, str], ...] = (
      "probability per training sample that the speed input is replaced by its mean (inertia; default 0)"),
     ("--aux-weight", "aux_weight", float,
      "weight of the aux loss on the expert's privileged labels (needs --model-arg aux=true; default 0)"),
+    ("--brake-loss", "brake_loss", str,
+     "same (default: the brake under --loss) | bce (binary cross-entropy of the brake output)"),
     ("--init-from", "init_from", str, "start from the weights and normalisation of this yawil checkpoint (fine-tune)"),
     ("--keep-steps", "keep_steps", lambda t: _step_list(t),
      "comma-separated step counts whose checkpoints are kept as step_NNNNNN.pt (learning curves)"),

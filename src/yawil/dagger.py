@@ -28,7 +28,7 @@ from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
-from yawil.stages import run_stage
+from yawil.stages import read_marker, run_stage
 
 TRAIN_MODES = ("finetune", "scratch")
 # Benchmark episodes use world seed 1000 * seed + route id (yawil.bench.suites.Episode.world_seed), far below this.
@@ -139,13 +139,8 @@ class DaggerRun:
 
         path = self.out / "dagger.json"
         mine = self.cfg.to_dict()
-        if path.is_file():
-            try:
-                saved = json.loads(path.read_text(encoding="utf-8"))
-            except ValueError as err:
-                raise ValueError(f"{path}: not valid JSON ({err})") from None
-            if not isinstance(saved, dict):
-                raise ValueError(f"{path}: expected a JSON object")
+        saved = read_marker(path)  # the same JSON-object file as a stage marker
+        if saved is not None:
             growable = {"rounds"}  # more rounds may be added to a finished run
             diff = sorted(k for k in set(saved) | set(mine) if k not in growable and saved.get(k) != mine.get(k))
             if diff:
@@ -274,17 +269,13 @@ def _floats(text: str, option: str) -> tuple[float, ...]:
 
 def _train_args(items: Sequence[str]) -> dict[str, Any]:
     from yawil.train import TrainConfig
+    from yawil.train_cli import _key_values
 
     known = {f.name for f in fields(TrainConfig)} - {"model", "data", "out", "max_steps", "init_from"}
-    out: dict[str, Any] = {}
-    for item in items:
-        key, sep, text = item.partition("=")
-        if not sep or key not in known:
-            raise ValueError(f"--train-arg {item!r}: expected KEY=VALUE with KEY one of {sorted(known)}")
-        try:
-            out[key] = json.loads(text)
-        except json.JSONDecodeError:
-            out[key] = text
+    out = _key_values(list(items), "--train-arg")
+    unknown = sorted(set(out) - known)
+    if unknown:
+        raise ValueError(f"--train-arg: unknown setting(s) {unknown}; known: {sorted(known)}")
     return out
 
 

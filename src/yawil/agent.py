@@ -22,8 +22,9 @@ import numpy as np
 import torch
 
 from yawil.checkpoint import Norm, load_checkpoint, model_from_checkpoint
+from yawil.expert import ExpertConfig
 from yawil.guidance import CommandNoise, GuidanceConfig, compute_guidance
-from yawil.sim.types import Control, Observation, command_index
+from yawil.sim.types import DT, Control, Observation, command_index
 from yawil.train import Runtime, resolve_runtime
 
 
@@ -60,6 +61,9 @@ class PostProcess:
         return Control(steer=steer, throttle=throttle, brake=brake).validate()
 
 
+_EXPERT = ExpertConfig()  # the speed controller's gains are the expert's, from the one place they are set
+
+
 @dataclass
 class SpeedControl:
     """Throttle and brake from a predicted target speed: the expert's PI on the speed error (its gains).
@@ -69,14 +73,14 @@ class SpeedControl:
     (TransFuser++ and TCP drive their targets through controllers the same way).
     """
 
-    kp: float = 0.6
-    ki: float = 0.15
-    integral_limit: float = 2.0
-    max_throttle: float = 0.75
-    brake_gain: float = 0.6
-    brake_deadband: float = 0.1
+    kp: float = _EXPERT.kp
+    ki: float = _EXPERT.ki
+    integral_limit: float = _EXPERT.integral_limit
+    max_throttle: float = _EXPERT.max_throttle
+    brake_gain: float = _EXPERT.brake_gain
+    brake_deadband: float = _EXPERT.brake_deadband
     stop_speed: float = 0.3  # m/s: a target below this, when nearly standing, holds the brake
-    dt: float = 0.1
+    dt: float = DT
     integral: float = 0.0
 
     def reset(self) -> None:

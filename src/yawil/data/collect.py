@@ -29,7 +29,7 @@ from yawil.data.schema import DRIVERS, LEAD_RANGE, LIGHT_RANGE, SPEED_REASONS, F
 from yawil.data.writer import DatasetWriter, EpisodeWriter
 from yawil.expert import Expert, ExpertConfig, ExpertState
 from yawil.guidance import GuidanceConfig, compute_guidance
-from yawil.sim.types import Control, EventKind, Observation, RoadOption, Route, Scenario, World
+from yawil.sim.types import DT, Control, EventKind, Observation, RoadOption, Route, Scenario, World
 from yawil.sim.weather import get_weather
 
 EPISODE_STRIDE = 100_000  # episode id = seed * EPISODE_STRIDE + index
@@ -366,7 +366,7 @@ def run_episode(
     wheel = None
     if learner is not None and onpolicy is not None:
         learner.reset()
-        wheel = _Wheel(onpolicy, np.random.default_rng([plan.seed, plan.index, 3]), 0.1)
+        wheel = _Wheel(onpolicy, np.random.default_rng([plan.seed, plan.index, 3]), DT)
         meta["round"] = onpolicy.round
     round_index = onpolicy.round if onpolicy is not None else 0
     ep: EpisodeWriter | None = None

@@ -143,6 +143,19 @@ def test_dagger_config_is_checked() -> None:
     with pytest.raises(ValueError, match="round0"):
         DaggerConfig(round0="x.pt")
     assert DaggerConfig(beta=(0.5, 0.25)).beta_of(1) == 0.5 and DaggerConfig(beta=(0.5, 0.25)).beta_of(5) == 0.25
+    with pytest.raises(ValueError, match="aux head"):
+        DaggerConfig(speed_control=True)  # the target speed comes from the aux head
+    assert DaggerConfig(speed_control=True, train_args={"model_args": {"aux": True}, "aux_weight": 0.5}).speed_control
+
+
+def test_the_dagger_learner_drives_as_benched(tmp_path: Path) -> None:
+    """With speed_control the learner's throttle and brake come from its aux head's target speed."""
+    from test_agent import checkpoint
+    from yawil.dagger import load_learner
+
+    path, _ = checkpoint(tmp_path, "yilratt", aux=True)
+    assert load_learner(str(path), 1, True).speed_control is not None
+    assert load_learner(str(path), 1).speed_control is None
 
 
 def test_a_tiny_dagger_run_end_to_end_and_resumed(tmp_path: Path) -> None:
@@ -167,6 +180,10 @@ def test_a_tiny_dagger_run_end_to_end_and_resumed(tmp_path: Path) -> None:
     assert sum("skipped" in line for line in logs) == 4
     with pytest.raises(ValueError, match="other settings"):
         DaggerRun(out, DaggerConfig(**{**cfg.to_dict(), "beta": (0.5,)}), log=lambda m: None).run()
+    saved = json.loads((out / "dagger.json").read_text())
+    del saved["speed_control"]  # a folder written before the setting existed still resumes
+    (out / "dagger.json").write_text(json.dumps(saved))
+    DaggerRun(out, cfg, log=lambda m: None, progress=False).run()
 
 
 def test_select_picks_the_checkpoint_that_drives_best(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:

@@ -63,6 +63,7 @@ class DaggerConfig:
     train_args: dict[str, Any] = field(default_factory=dict)  # further TrainConfig settings (speed_dropout, ...)
     round0: str | None = None  # an existing round-0 checkpoint (then expert_data must be its data)
     expert_data: str | None = None  # an existing expert dataset instead of collecting one
+    speed_control: bool = False  # the learner drives throttle and brake from its aux head's target speed (as benched)
 
     def __post_init__(self) -> None:
         def need(ok: bool, name: str, want: str) -> None:
@@ -79,6 +80,10 @@ class DaggerConfig:
         need(self.round0 is None or self.expert_data is not None, "round0", "given together with --expert-data")
         need(self.lr > 0 and math.isfinite(self.lr), "lr", "a number > 0")
         need(isinstance(self.train_args, dict), "train_args", "a mapping of train settings")
+        need(isinstance(self.speed_control, bool), "speed_control", "true or false")
+        aux = (self.train_args.get("model_args") or {}).get("aux") is True
+        need(not self.speed_control or aux or self.round0 is not None, "speed_control",
+             "a model with an aux head (--train-arg 'model_args={\"aux\": true}' --train-arg aux_weight=...)")
 
     def beta_of(self, r: int) -> float:
         return float(self.beta[min(r, len(self.beta)) - 1])
@@ -93,14 +98,16 @@ def _is_int(v: Any) -> bool:
     return isinstance(v, int) and not isinstance(v, bool)
 
 
-def load_learner(checkpoint: str, threads: int = 1) -> Any:
-    """The learner of a collection process: the checkpoint's agent on the CPU, with `threads` torch threads."""
+def load_learner(checkpoint: str, threads: int = 1, speed_control: bool = False) -> Any:
+    """The learner of a collection process: the checkpoint's agent on the CPU, with `threads` torch threads,
+    driving as it will be benchmarked (`speed_control`: throttle and brake from its target speed), so that the
+    states it visits are the ones the benchmark will see."""
     import torch
 
     from yawil.agent import Agent
 
     torch.set_num_threads(threads)
-    return Agent.from_checkpoint(checkpoint, device="cpu")
+    return Agent.from_checkpoint(checkpoint, device="cpu", speed_control=speed_control)
 
 
 # ------------------------------------------------------------------------------------------------- loop
@@ -142,6 +149,8 @@ class DaggerRun:
         saved = read_marker(path)  # the same JSON-object file as a stage marker
         if saved is not None:
             growable = {"rounds"}  # more rounds may be added to a finished run
+            defaults = DaggerConfig().to_dict()  # a setting added later reads as its default in older folders
+            saved = {**{k: v for k, v in defaults.items() if k not in saved}, **saved}
             diff = sorted(k for k in set(saved) | set(mine) if k not in growable and saved.get(k) != mine.get(k))
             if diff:
                 raise ValueError(
@@ -188,7 +197,7 @@ class DaggerRun:
         onpolicy = OnPolicy(round=r, beta=cfg.beta_of(r), segment_seconds=cfg.segment_seconds,
                             takeover_lateral=cfg.takeover_lateral, takeover_decel=cfg.takeover_decel,
                             takeover_stall=cfg.takeover_stall, takeover_seconds=cfg.takeover_seconds)
-        learner = Learner(factory=functools.partial(load_learner, str(policy), 1), onpolicy=onpolicy,
+        learner = Learner(factory=functools.partial(load_learner, str(policy), 1, cfg.speed_control), onpolicy=onpolicy,
                           identity=str(policy.resolve()), min_world_seed=BENCH_WORLD_SEED_LIMIT,
                           reject_route=BenchmarkRoutes(cfg.town))
         # No steering noise (the learner makes its own mistakes); the second before a collision is not a label.
@@ -256,6 +265,8 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                    help="a further train setting (JSON value), e.g. --train-arg speed_dropout=0.3")
     p.add_argument("--round0", default=None, help="use this checkpoint as the round-0 policy (with --expert-data)")
     p.add_argument("--expert-data", default=None, help="use this expert dataset as round 0's data")
+    p.add_argument("--speed-control", action="store_true",
+                   help="the learner drives throttle and brake through its aux head's target speed (bench --speed-control)")
     p.add_argument("--no-progress", action="store_true")
     return p
 
@@ -288,7 +299,7 @@ def run(args: argparse.Namespace) -> int:
             takeover_lateral=args.takeover_lateral, takeover_decel=args.takeover_decel,
             takeover_stall=args.takeover_stall, takeover_seconds=args.takeover_seconds, batch_size=args.batch_size,
             lr=args.lr, workers=args.workers, threads=args.threads, train_args=_train_args(args.train_arg),
-            round0=args.round0, expert_data=args.expert_data,
+            round0=args.round0, expert_data=args.expert_data, speed_control=args.speed_control,
         )
         from yawil.train import TrainConfig
 

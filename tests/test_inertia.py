@@ -19,8 +19,8 @@ torch.set_num_threads(1)
 K = 4
 
 
-def _yilratt(**kw: object) -> models.DrivingModel:
-    return models.create("yilratt", seed=0, guidance_dim=K, dropout=0.0, **kw)
+def _yilratt(name: str = "yilratt", **kw: object) -> models.DrivingModel:
+    return models.create(name, seed=0, guidance_dim=K, dropout=0.0, **kw)
 
 
 def _inputs(b: int = 2) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -28,24 +28,26 @@ def _inputs(b: int = 2) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     return torch.rand(b, 3, 88, 200, generator=g), torch.rand(b, 1, generator=g), torch.rand(b, K, generator=g)
 
 
-def test_aux_head_and_speed_blind_variant() -> None:
+@pytest.mark.parametrize("name", ["yilratt", "yaw-guided"])
+def test_aux_head_and_speed_blind_variant(name: str) -> None:
+    """YILRatt and the yaw-guided baseline offer the same variants, so a recipe compares on both."""
     image, speed, guide = _inputs()
-    plain = _yilratt().eval()
+    plain = _yilratt(name).eval()
     assert plain(image, speed, guidance=guide).aux is None
-    aux = _yilratt(aux=True).eval()
+    aux = _yilratt(name, aux=True).eval()
     out = aux(image, speed, guidance=guide)
     assert out.aux is not None and tuple(out.aux.shape) == (2, len(models.base.AUX_NAMES))
     # the aux head is added last: every other weight is initialised as in the plain model
-    for name, value in plain.state_dict().items():
-        assert torch.equal(value, aux.state_dict()[name]), name
-    blind = _yilratt(speed_input=False).eval()
+    for key, value in plain.state_dict().items():
+        assert torch.equal(value, aux.state_dict()[key]), key
+    blind = _yilratt(name, speed_input=False).eval()
     with torch.inference_mode():
         a = blind(image, speed, guidance=guide).actions
         b = blind(image, speed * 0 + 5.0, guidance=guide).actions
         c = plain(image, speed * 0 + 5.0, guidance=guide).actions
     assert torch.equal(a, b) and not torch.allclose(a, c)
     with pytest.raises(ValueError, match="speed_input"):
-        _yilratt(speed_input="no")
+        _yilratt(name, speed_input="no")
 
 
 def test_speed_dropout_is_seeded_and_has_its_rate() -> None:

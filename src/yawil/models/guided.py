@@ -17,7 +17,7 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
-from yawil.models.base import DrivingModel, ModelOutput, resolve_guidance, squash_actions
+from yawil.models.base import AUX_NAMES, DrivingModel, ModelOutput, resolve_guidance, squash_actions
 from yawil.models.cil import CILPerception
 from yawil.models.layers import fc_relu, head
 from yawil.models.registry import register
@@ -35,14 +35,23 @@ class GuidedIL(DrivingModel):
         image_size: Sequence[int] = (88, 200),
         dropout: float = 0.5,
         conv_dropout: float = 0.0,
+        speed_input: bool = True,
+        aux: bool = False,
     ) -> None:
+        """`speed_input` and `aux`: the inertia variants of YILRatt (docs/training.md), so that a recipe can be
+        compared on the cheap baseline and on YILRatt the same way."""
         super().__init__(guidance=guidance, guidance_dim=resolve_guidance(guidance, guidance_dim), uses_command=False)
+        for name, v in (("speed_input", speed_input), ("aux", aux)):
+            if not isinstance(v, bool):
+                raise ValueError(f"{name}: expected true or false, got {v!r}")
         self.name = NAMES[guidance]
+        self.speed_input = speed_input
         self.perception = CILPerception(image_size, conv_dropout)
         self.measurement = fc_relu(1 + self.guidance_dim, (128, 128))
         self.join = fc_relu(self.perception.out_dim + 128, (512,))
         self.action = head(512, (256, 256), 3, dropout)
         self.speed_head = head(self.perception.out_dim, (256, 256), 1, dropout)
+        self.aux_head = head(512, (256,), len(AUX_NAMES), dropout) if aux else None
 
     def forward(
         self, image: Tensor, speed: Tensor, guidance: Tensor | None = None, command: Tensor | None = None
@@ -51,9 +60,12 @@ class GuidedIL(DrivingModel):
         assert guide is not None
         self.perception.check(image)
         feat = self.perception(self.normalise(image))
+        if not self.speed_input:
+            speed = torch.zeros_like(speed)
         m = self.measurement(torch.cat([speed, guide], dim=1).to(feat.dtype))
-        raw = self.action(self.join(torch.cat([feat, m], dim=1)))
-        return ModelOutput(squash_actions(raw), self.speed_head(feat), [], None)
+        joined = self.join(torch.cat([feat, m], dim=1))
+        aux = self.aux_head(joined) if self.aux_head is not None else None
+        return ModelOutput(squash_actions(self.action(joined)), self.speed_head(feat), [], None, aux)
 
     def stage_features(self, image: Tensor) -> list[Tensor]:
         self.perception.check(image)
@@ -62,23 +74,26 @@ class GuidedIL(DrivingModel):
 
 @register("yaw-guided")
 def yaw_guided(
-    guidance_dim: int = 15, image_size: Sequence[int] = (88, 200), dropout: float = 0.5, conv_dropout: float = 0.0
+    guidance_dim: int = 15, image_size: Sequence[int] = (88, 200), dropout: float = 0.5, conv_dropout: float = 0.0,
+    speed_input: bool = True, aux: bool = False,
 ) -> GuidedIL:
     """Yaw-guided IL: guidance = route yaws relative to the first one."""
-    return GuidedIL("yaw", guidance_dim, image_size, dropout, conv_dropout)
+    return GuidedIL("yaw", guidance_dim, image_size, dropout, conv_dropout, speed_input, aux)
 
 
 @register("xy-guided")
 def xy_guided(
-    guidance_dim: int = 30, image_size: Sequence[int] = (88, 200), dropout: float = 0.5, conv_dropout: float = 0.0
+    guidance_dim: int = 30, image_size: Sequence[int] = (88, 200), dropout: float = 0.5, conv_dropout: float = 0.0,
+    speed_input: bool = True, aux: bool = False,
 ) -> GuidedIL:
     """XY-guided IL: guidance = absolute waypoint coordinates scaled by the map bounds."""
-    return GuidedIL("xy", guidance_dim, image_size, dropout, conv_dropout)
+    return GuidedIL("xy", guidance_dim, image_size, dropout, conv_dropout, speed_input, aux)
 
 
 @register("simyaw-guided")
 def simyaw_guided(
-    guidance_dim: int = 15, image_size: Sequence[int] = (88, 200), dropout: float = 0.5, conv_dropout: float = 0.0
+    guidance_dim: int = 15, image_size: Sequence[int] = (88, 200), dropout: float = 0.5, conv_dropout: float = 0.0,
+    speed_input: bool = True, aux: bool = False,
 ) -> GuidedIL:
     """Simulator-yaw IL ("Carla-yaw IL"): guidance = lane headings reported by the simulator's map."""
-    return GuidedIL("sim_yaw", guidance_dim, image_size, dropout, conv_dropout)
+    return GuidedIL("sim_yaw", guidance_dim, image_size, dropout, conv_dropout, speed_input, aux)

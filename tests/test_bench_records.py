@@ -77,6 +77,33 @@ def test_key_and_run_identity(tmp_path: Path) -> None:
         check_run_info(tmp_path, {"agent": "/x/best.pt", "agent_options": {}})
 
 
+def test_a_changed_checkpoint_or_label_is_refused_on_resume(tmp_path: Path) -> None:
+    from yawil.bench.runner import AgentSpec
+
+    ckpt = tmp_path / "best.pt"
+    ckpt.write_bytes(b"weights one")
+    spec = AgentSpec(str(ckpt))
+    info = {"agent": spec.identity(), "agent_options": {}, "label": "a", "agent_sha256": spec.content_hash()}
+    out = tmp_path / "r"
+    out.mkdir()
+    check_run_info(out, info)
+    check_run_info(out, info, label_given=True)
+    with pytest.raises(ValueError, match="label"):
+        check_run_info(out, {**info, "label": "b"}, label_given=True)
+    check_run_info(out, {**info, "label": "b"})  # the default label (the folder's name) is not a choice
+    ckpt.write_bytes(b"weights two")  # another model written to the same path
+    assert spec.content_hash() != info["agent_sha256"]
+    with pytest.raises(ValueError, match="has changed"):
+        check_run_info(out, {**info, "agent_sha256": spec.content_hash()})
+    assert AgentSpec("expert").content_hash() is None
+
+
+def test_iter_results_refuses_a_repeated_episode(tmp_path: Path) -> None:
+    (tmp_path / EPISODES_FILE).write_text(json.dumps(_rec(0)) + "\n" + json.dumps(_rec(1)) + "\n" + json.dumps(_rec(0)) + "\n")
+    with pytest.raises(ValueError, match="record 3 repeats episode straight/training/0/0"):
+        list(iter_results(tmp_path))
+
+
 def test_iter_results_needs_a_results_folder(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="episodes.jsonl"):
         list(iter_results(tmp_path))

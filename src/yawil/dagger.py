@@ -161,6 +161,12 @@ class DaggerRun:
         write_json_atomic(path, mine)
 
     def run(self) -> Path:
+        from yawil.locking import folder_lock
+
+        with folder_lock(self.out, "DAgger run"):
+            return self._run()
+
+    def _run(self) -> Path:
         self.check_config()
         cfg = self.cfg
         t0 = time.perf_counter()

@@ -591,8 +591,16 @@ def train(
 
     `splits` = (train dataset, validation dataset, guidance config dict) replaces the datasets that
     `cfg.data` names, for data already in memory; the datasets follow yawil.data.DrivingDataset's contract
-    (sample dicts, and `labels(name)` giving a label array without decoding images).
+    (sample dicts, and `labels(name)` giving a label array without decoding images). One process at a time
+    writes a run folder (yawil.locking).
     """
+    from yawil.locking import folder_lock
+
+    with folder_lock(cfg.out, "training run"):
+        return _train(cfg, resume, splits)
+
+
+def _train(cfg: TrainConfig, resume: bool, splits: tuple[Any, Any, Mapping[str, Any]] | None) -> TrainResult:
     torch.set_num_threads(cfg.threads or auto_threads(cfg.workers))
     out = Path(cfg.out)
     runtime = resolve_runtime(cfg.device, cfg.precision, cfg.channels_last)

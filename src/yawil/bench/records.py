@@ -128,10 +128,12 @@ def write_json_atomic(path: str | Path, obj: Any) -> None:
     os.replace(tmp, path)
 
 
-def check_run_info(folder: str | Path, info: Mapping[str, Any]) -> None:
+def check_run_info(folder: str | Path, info: Mapping[str, Any], label_given: bool = False) -> None:
     """Store the agent's identity with the results, or check that a resumed run uses the same agent.
 
-    Mixing two agents' episodes in one folder would make its figures meaningless, so it is an error.
+    Mixing two agents' episodes in one folder would make its figures meaningless, so it is an error: the
+    same path, options and checkpoint content (`agent_sha256`; folders written before it was recorded are
+    checked by path only). A label given explicitly must match the folder's (it would otherwise be ignored).
     """
     path = Path(folder) / RUN_FILE
     if path.exists():
@@ -139,12 +141,19 @@ def check_run_info(folder: str | Path, info: Mapping[str, Any]) -> None:
             old = json.loads(path.read_text(encoding="utf-8"))
         except ValueError as err:
             raise ValueError(f"{path}: not valid JSON ({err})") from None
-        for key in ("agent", "agent_options"):
+        keys = ["agent", "agent_options"] + (["label"] if label_given else [])
+        for key in keys:
             if old.get(key) != info.get(key):
                 raise ValueError(
                     f"{path}: results folder belongs to {key}={old.get(key)!r}, this run has {info.get(key)!r}; "
                     "use another --out folder"
                 )
+        if old.get("agent_sha256") is not None and old.get("agent_sha256") != info.get("agent_sha256"):
+            raise ValueError(
+                f"{path}: the checkpoint {info.get('agent')} has changed since these results were driven "
+                f"(sha256 {str(old['agent_sha256'])[:12]}... then, {str(info.get('agent_sha256'))[:12]}... now); "
+                "use another --out folder"
+            )
         return
     write_json_atomic(path, dict(info))
 
@@ -155,4 +164,10 @@ def iter_results(folder: str | Path) -> Iterator[dict[str, Any]]:
     path = p / EPISODES_FILE if p.is_dir() else p
     if not path.exists():
         raise ValueError(f"{folder}: no {EPISODES_FILE} found (expected a folder written by `yawil bench`)")
-    yield from read_records(path)
+    seen: dict[str, int] = {}
+    for i, rec in enumerate(read_records(path)):
+        key = episode_key(rec)
+        if key in seen:  # counted twice, a figure would be wrong without a word
+            raise ValueError(f"{path}: record {i + 1} repeats episode {key} (record {seen[key] + 1})")
+        seen[key] = i
+        yield rec

@@ -23,6 +23,7 @@ from typing import Any, Protocol
 
 from yawil.bench.metrics import EpisodeTracker, subsample_route
 from yawil.bench.records import EpisodeLog, check_run_info, episode_key
+from yawil.locking import folder_lock
 from yawil.bench.suites import Episode
 from yawil.sim.types import Control, Observation, World
 
@@ -67,6 +68,19 @@ class AgentSpec:
 
     def identity(self) -> str:
         return EXPERT if self.is_expert else str(Path(self.agent).resolve())
+
+    def content_hash(self) -> str | None:
+        """SHA-256 of the checkpoint file (None for the expert): a resume must drive the same weights, even
+        when another checkpoint was written to the same path in between."""
+        if self.is_expert:
+            return None
+        import hashlib
+
+        h = hashlib.sha256()
+        with open(self.agent, "rb") as fh:
+            for block in iter(lambda: fh.read(1 << 20), b""):
+                h.update(block)
+        return h.hexdigest()
 
     def build(self, seed: int) -> DrivingAgent:
         """A fresh agent; learned agents get the episode's seed for their noise."""
@@ -309,10 +323,13 @@ def run_benchmark(
     use_camera = (not spec.is_expert) if camera is None else camera
     out = Path(out)
     record_dir = out / "videos" if record else None
-    info = {"agent": spec.identity(), "agent_options": spec.options(), "label": label or out.name}
+    import yawil
+
+    info = {"agent": spec.identity(), "agent_options": spec.options(), "label": label or out.name,
+            "agent_sha256": spec.content_hash(), "yawil_version": yawil.__version__}
     t0 = time.perf_counter()
-    with EpisodeLog(out) as log:
-        check_run_info(out, info)
+    with folder_lock(out, "results folder"), EpisodeLog(out) as log:
+        check_run_info(out, info, label_given=label is not None)
         todo = [ep for ep in episodes if ep.key not in log]
         skipped = len(episodes) - len(todo)
         done_now: list[dict[str, Any]] = []

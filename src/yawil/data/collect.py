@@ -571,7 +571,21 @@ def collect(
     overrides (e.g. vehicles=(30, 30)). Resumable: run it again and it continues where it stopped.
     `world_factory` makes each process's simulator; with workers > 1 it must be picklable (a module-level
     function), as spawned processes import it. `learner` makes it an on-policy (DAgger) collection.
+    One process at a time writes a dataset (yawil.locking).
     """
+    from yawil.locking import folder_lock
+
+    with folder_lock(out, "dataset"):
+        return _collect(out, town, weathers, frames, workers, seed, episodes, config, guidance, expert_config,
+                        progress, world_factory, learner, desc, **overrides)
+
+
+def _collect(
+    out: str | os.PathLike[str], town: str, weathers: Sequence[str] | str, frames: int | None, workers: int,
+    seed: int, episodes: int | None, config: CollectConfig | None, guidance: GuidanceConfig | None,
+    expert_config: ExpertConfig | None, progress: bool, world_factory: WorldFactory, learner: Learner | None,
+    desc: str, **overrides: Any,
+) -> CollectSummary:
     from yawil.sim.weather import weather_set
 
     if frames is None and episodes is None:

@@ -23,8 +23,8 @@ from typing import Any, Protocol
 
 from yawil.bench.metrics import EpisodeTracker, subsample_route
 from yawil.bench.records import EpisodeLog, check_run_info, episode_key
-from yawil.locking import folder_lock
 from yawil.bench.suites import Episode
+from yawil.locking import folder_lock
 from yawil.sim.types import Control, Observation, World
 
 EXPERT = "expert"

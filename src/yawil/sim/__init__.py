@@ -1,8 +1,9 @@
 """The simulator interface: backend-neutral types, `make_world`, and the Gymnasium environments.
 
 `make_world("embedded")` gives the built-in simulator (yawil.sim.town); `make_world("carla", ...)` the CARLA
-backend when it is installed. Importing this package registers `yawil/Town01-v0`, `yawil/Town02-v0` and
-`yawil/Square-v0` with Gymnasium (lazily: the environment module loads on `gymnasium.make`).
+backend when it is installed. The Gymnasium environments (`yawil/Town01-v0`, `yawil/Town02-v0`,
+`yawil/Square-v0`, module `yawil.sim.gym_env`) are registered by the parent package, `import yawil`, which
+every import of this package runs first; the environment module loads on `gymnasium.make`.
 """
 
 from __future__ import annotations
@@ -55,18 +56,6 @@ def world_factory(backend: str = "embedded", **kwargs: Any) -> Callable[[], Worl
         raise ValueError(f"unknown simulator backend {backend!r}; choose one of {', '.join(BACKENDS)}")
     return functools.partial(make_world, backend, **kwargs)
 
-
-def _register_envs() -> None:
-    try:
-        import gymnasium
-    except ModuleNotFoundError:  # pragma: no cover - gymnasium is a hard dependency
-        return
-    for env_id, town in (("yawil/Town01-v0", "town01"), ("yawil/Town02-v0", "town02"), ("yawil/Square-v0", "square")):
-        if env_id not in gymnasium.registry:
-            gymnasium.register(id=env_id, entry_point="yawil.sim.gym_env:YawilDriveEnv", kwargs={"town": town})
-
-
-_register_envs()
 
 __all__ = [
     "BACKENDS", "COMMANDS", "DT", "AgentState", "Control", "Event", "EventKind", "LightState", "Observation", "Pose",

@@ -1,48 +1,120 @@
 """Gymnasium wrapper of the embedded world: `gymnasium.make("yawil/Town01-v0")` (also Town02, Square).
 
-Observation: Dict(image uint8 (88, 200, 3) when the camera is on, speed (1,), command Discrete(4) as the
-branch index of `yawil.sim.types.COMMANDS`, pose (x, y, yaw)). Action: Box([-1, 0, 0], [1, 1, 1]) =
-(steer, throttle, brake), CARLA convention.
+`import yawil` registers the ids (see `yawil.__init__`); the entry point is `make_env` below, which checks
+the options and builds `YawilDriveEnv`.
+
+Observation: Dict(
+  image uint8 (88, 200, 3) when the camera is on (the models' main input),
+  speed (1,) m/s, command Discrete(4) = branch index of `yawil.sim.types.COMMANDS`, pose (x, y, yaw),
+  route (K+1, 2): the route ahead in map metres, one point every `spacing` metres from the ego's projection,
+  guidance (K,) (or (2K,) for "xy"): the paper's guidance vector, from `yawil.guidance.compute_guidance`,
+)
+with K and spacing from `guidance_config` (default 15 points, 2 m). `guidance=None` drops `route` and
+`guidance` (the observation before they were added). Action: Box([-1, 0, 0], [1, 1, 1]) = (steer, throttle,
+brake), CARLA convention.
 
 Reward per step = metres of route progress - 50 per collision - 5 per lane invasion - 20 per red light.
 `terminated` when the goal is reached (or at a collision if terminate_on_collision); `truncated` at the
-timeout.
+timeout. With `expert_action=True` (or reset option {"expert_action": True}) `info["expert_action"]` holds
+what the privileged expert (`yawil.expert.Expert`) would do for the returned observation, as float32
+(steer, throttle, brake): the label imitation learning (and DAgger) needs.
+
+Rendering is headless: `render_mode="rgb_array"` gives a bird's-eye image of the town (roads, route, lights,
+agents, the ego and its trail); "human" is refused with a ValueError, as no window can be opened here.
 """
 
 from __future__ import annotations
 
+import difflib
+import inspect
+import math
+from collections.abc import Mapping
 from typing import Any
 
 import gymnasium as gym
 import numpy as np
 from gymnasium import spaces
 
-from yawil.sim.town.world import EmbeddedWorld
+from yawil.expert import Expert
+from yawil.guidance import GUIDANCE_KINDS, GuidanceConfig, compute_guidance, project_on_route, resample_route
+from yawil.sim.town.layout import resolve_town
+from yawil.sim.town.world import EmbeddedWorld, _check_scenario
 from yawil.sim.types import Control, EventKind, Observation, Scenario, command_index
 
 PENALTIES = {EventKind.COLLISION: 50.0, EventKind.LANE_INVASION: 5.0, EventKind.RED_LIGHT: 20.0}
+RENDER_MODES: tuple[str, ...] = ("rgb_array",)
+RESET_OPTIONS: tuple[str, ...] = ("expert_action",)
+COORD_LIMIT = 1e5  # metres: bound of the map-frame Boxes (pose, route)
+
+
+def _render_mode_error(mode: object) -> ValueError:
+    """One line that says why a mode is refused and which ones work (shared by make_env and the class)."""
+    if mode == "human":
+        return ValueError("render_mode='human' is not supported: the yawil environments are headless (no window); "
+                          "use render_mode='rgb_array' for a bird's-eye image "
+                          "(or 'rgb_array_list' via gymnasium.make), "
+                          "or None")
+    return ValueError(f"render_mode {mode!r} is not supported; choose None, 'rgb_array' or "
+                      "'rgb_array_list' (the last via gymnasium.make)")
+
+
+def _flag(name: str, value: Any) -> bool:
+    if not isinstance(value, (bool, np.bool_)):
+        raise ValueError(f"{name} must be True or False, got {value!r}")
+    return bool(value)
 
 
 class YawilDriveEnv(gym.Env[dict[str, Any], np.ndarray]):
-    metadata = {"render_modes": ["rgb_array"], "render_fps": 10}
+    """One embedded-world episode per `reset`; seeded resets replay the same episode."""
+
+    metadata = {"render_modes": list(RENDER_MODES), "render_fps": 10}
 
     def __init__(self, town: str = "town01", weather: str = "ClearNoon", vehicles: int = 0, pedestrians: int = 0,
                  camera: bool = True, timeout_s: float | None = None, min_route_length: float = 100.0,
                  terminate_on_collision: bool = True, render_mode: str | None = None,
-                 render_backend: str = "software") -> None:
-        if render_mode not in (None, "rgb_array"):
-            raise ValueError(f"render_mode {render_mode!r} is not supported; choose None or 'rgb_array'")
+                 render_backend: str = "software", guidance: str | None = "yaw",
+                 guidance_config: GuidanceConfig | Mapping[str, Any] | None = None,
+                 expert_action: bool = False) -> None:
+        if render_mode is not None and render_mode not in RENDER_MODES:
+            raise _render_mode_error(render_mode)
+        if not isinstance(town, str) or not town:
+            raise ValueError(f"town must be a town name or a layout .json path, got {town!r}")
+        resolve_town(town)  # an unknown town fails here, not at the first reset
+        camera = _flag("camera", camera)
+        self.terminate_on_collision = _flag("terminate_on_collision", terminate_on_collision)
+        self.expert_action = _flag("expert_action", expert_action)
+        if not isinstance(render_backend, str):
+            raise ValueError(f"render_backend must be a string ('software' or 'opengl'), got {render_backend!r}")
+        if guidance is not None and guidance not in GUIDANCE_KINDS:
+            kinds = ", ".join(map(repr, GUIDANCE_KINDS))
+            raise ValueError(f"guidance must be one of {kinds} or None, got {guidance!r}")
+        if guidance_config is None:
+            guidance_config = GuidanceConfig()
+        elif isinstance(guidance_config, Mapping):
+            guidance_config = GuidanceConfig.from_dict(guidance_config)
+        elif not isinstance(guidance_config, GuidanceConfig):
+            raise ValueError("guidance_config must be a GuidanceConfig, a mapping of its fields "
+                             f"(spacing, count, reference) or None, got {type(guidance_config).__name__}")
         self.scenario = Scenario(town=town, weather=weather, vehicles=vehicles, pedestrians=pedestrians,
                                  camera=camera, timeout_s=timeout_s, min_route_length=min_route_length)
-        self.terminate_on_collision = terminate_on_collision
+        _check_scenario(self.scenario)  # weather, counts, timeout, route length: clear errors before any reset
+        self.guidance = guidance
+        self.guidance_config = guidance_config
         self.render_mode = render_mode
         self.world = EmbeddedWorld(render_backend=render_backend)
+        k = guidance_config.count
         obs_spaces: dict[str, spaces.Space[Any]] = {
             "speed": spaces.Box(0.0, 100.0, shape=(1,), dtype=np.float32),
             "command": spaces.Discrete(4),
-            "pose": spaces.Box(np.array([-1e5, -1e5, -np.pi], dtype=np.float32),
-                               np.array([1e5, 1e5, np.pi], dtype=np.float32), dtype=np.float32),
+            "pose": spaces.Box(np.array([-COORD_LIMIT, -COORD_LIMIT, -np.pi], dtype=np.float32),
+                               np.array([COORD_LIMIT, COORD_LIMIT, np.pi], dtype=np.float32), dtype=np.float32),
         }
+        if guidance is not None:
+            obs_spaces["route"] = spaces.Box(-COORD_LIMIT, COORD_LIMIT, shape=(k + 1, 2), dtype=np.float32)
+            if guidance == "xy":
+                obs_spaces["guidance"] = spaces.Box(-1.0, 1.0, shape=(2 * k,), dtype=np.float32)
+            else:
+                obs_spaces["guidance"] = spaces.Box(-np.pi, np.pi, shape=(k,), dtype=np.float32)
         if camera:
             obs_spaces["image"] = spaces.Box(0, 255, shape=(88, 200, 3), dtype=np.uint8)
         self.observation_space = spaces.Dict(obs_spaces)
@@ -50,30 +122,72 @@ class YawilDriveEnv(gym.Env[dict[str, Any], np.ndarray]):
                                        np.array([1.0, 1.0, 1.0], dtype=np.float32), dtype=np.float32)
         self._last: Observation | None = None
         self._progress = 0.0
+        self._hint: int | None = None  # route segment of the last guidance, as the data collector keeps it
+        self._expert: Expert | None = None
+        self._label = False  # whether this episode's info carries the expert's action
+        self._birdseye: _BirdsEye | None = None
+        self._trail: list[tuple[float, float]] = []  # the ego's positions this episode, for the render
 
+    # ------------------------------------------------------------------------------------- observation
     def _convert(self, obs: Observation) -> dict[str, Any]:
         out: dict[str, Any] = {
-            "speed": np.array([min(obs.speed, 100.0)], dtype=np.float32),
+            "speed": np.array([min(max(obs.speed, 0.0), 100.0)], dtype=np.float32),
             "command": command_index(int(obs.command)),
             "pose": np.array([obs.pose.x, obs.pose.y, obs.pose.yaw], dtype=np.float32),
         }
+        if self.guidance is not None:
+            cfg = self.guidance_config
+            route = obs.route
+            g, self._hint = compute_guidance(route.xy, route.lane_yaw, (obs.pose.x, obs.pose.y), obs.pose.yaw,
+                                             obs.bounds, cfg, hint_index=self._hint)
+            _, s = project_on_route(route.xy, (obs.pose.x, obs.pose.y), hint_index=self._hint)
+            # the K+1 points the yaw guidance is built from: heading differences of `route` give `guidance`
+            points = resample_route(route.xy, s, cfg.spacing, cfg.count + 1)
+            out["route"] = np.clip(points, -COORD_LIMIT, COORD_LIMIT).astype(np.float32)
+            out["guidance"] = np.array(g.get(self.guidance), dtype=np.float32)  # a writable copy
         if self.scenario.camera:
             out["image"] = obs.image
         return out
 
     def _info(self, obs: Observation) -> dict[str, Any]:
-        return {"events": obs.events, "route_index": obs.route_index, "time": obs.time,
-                "distance_driven": obs.distance_driven}
+        info: dict[str, Any] = {"events": obs.events, "route_index": obs.route_index, "time": obs.time,
+                                "distance_driven": obs.distance_driven}
+        if self._label:
+            assert self._expert is not None
+            c = self._expert.act(obs)
+            info["expert_action"] = np.array([c.steer, c.throttle, c.brake], dtype=np.float32)
+        return info
 
+    # --------------------------------------------------------------------------------------- episodes
     def reset(self, *, seed: int | None = None, options: dict[str, Any] | None = None) -> tuple[dict[str, Any], dict[str, Any]]:
+        """Start an episode; the world's seed is drawn from `np_random`, so one seed gives one episode."""
+        label = self.expert_action
+        if options is not None:
+            if not isinstance(options, Mapping):
+                raise ValueError(f"reset options must be a dict or None, got {type(options).__name__}")
+            unknown = sorted(set(options) - set(RESET_OPTIONS))
+            if unknown:
+                raise ValueError(f"unknown reset option(s) {unknown}; known: {', '.join(RESET_OPTIONS)}")
+            if "expert_action" in options:
+                label = _flag("reset option expert_action", options["expert_action"])
         super().reset(seed=seed)
         episode_seed = int(self.np_random.integers(0, 2**31 - 1))
         obs = self.world.reset(self.scenario, episode_seed)
         self._last = obs
         self._progress = self.world.c_progress.progress
+        self._hint = None
+        self._label = label
+        if label:
+            self._expert = self._expert or Expert()
+            self._expert.reset()
+        self._trail = [(obs.pose.x, obs.pose.y)]
+        if self._birdseye is not None:
+            self._birdseye.start(obs)
         return self._convert(obs), self._info(obs)
 
     def step(self, action: np.ndarray) -> tuple[dict[str, Any], float, bool, bool, dict[str, Any]]:
+        if self._last is None:
+            raise gym.error.ResetNeeded("call reset() before step()")
         a = np.asarray(action, dtype=np.float64).reshape(-1)
         if a.shape != (3,):
             raise ValueError(f"action must be (steer, throttle, brake), got shape {np.shape(action)}")
@@ -85,6 +199,8 @@ class YawilDriveEnv(gym.Env[dict[str, Any], np.ndarray]):
         kinds = {e.kind for e in obs.events}
         terminated = self.world.c_goal.reached or (self.terminate_on_collision and EventKind.COLLISION in kinds)
         truncated = self.world.c_timeout.expired and not terminated
+        if self.render_mode is not None:
+            self._trail.append((obs.pose.x, obs.pose.y))
         return self._convert(obs), float(reward), bool(terminated), bool(truncated), self._info(obs)
 
     @property
@@ -93,9 +209,146 @@ class YawilDriveEnv(gym.Env[dict[str, Any], np.ndarray]):
         return self._last
 
     def render(self) -> np.ndarray | None:  # type: ignore[override]
-        if self.render_mode != "rgb_array" or self._last is None:
+        """The bird's-eye image (H, W, 3) uint8 in "rgb_array" mode; None without a render mode."""
+        if self.render_mode is None:
             return None
-        return self._last.image
+        if self._last is None:
+            raise gym.error.ResetNeeded("call reset() before render()")
+        if self._birdseye is None:  # drawn on first use, so envs that never render never load matplotlib
+            assert self.world.town is not None
+            self._birdseye = _BirdsEye(self.world.town.geometry)
+            self._birdseye.start(self._last)
+        return self._birdseye.frame(self.world, self._trail)
 
     def close(self) -> None:
         self.world.close()
+        self._birdseye = None
+
+
+def make_env(**kwargs: Any) -> gym.Env[dict[str, Any], np.ndarray]:
+    """The registered entry point: one clear ValueError for a misspelt option or an unsupported render mode.
+
+    `gymnasium.make` would otherwise wrap 'human' in its pygame window (a crash on a headless machine) and turn
+    an unknown option into a TypeError about the constructor; 'rgb_array_list' gets gymnasium's RenderCollection.
+    """
+    known = [p for p in inspect.signature(YawilDriveEnv.__init__).parameters if p != "self"]
+    for name in kwargs:
+        if name not in known:
+            close = difflib.get_close_matches(name, known, n=1)
+            hint = f" (did you mean {close[0]!r}?)" if close else ""
+            raise ValueError(f"unknown option {name!r} for the yawil environments{hint}; known: {', '.join(known)}")
+    mode = kwargs.get("render_mode")
+    if mode == "rgb_array_list":
+        from gymnasium.wrappers import RenderCollection
+
+        return RenderCollection(YawilDriveEnv(**{**kwargs, "render_mode": "rgb_array"}))
+    if mode is not None and mode not in RENDER_MODES:
+        raise _render_mode_error(mode)
+    return YawilDriveEnv(**kwargs)
+
+
+# ---------------------------------------------------------------------------------------------- bird's-eye
+_TRAIL = (255, 140, 0)
+_EGO = (255, 45, 149)  # the ego's colour in draw_birdseye
+_ROUTE = (31, 95, 255)
+_LIGHTS = {"red": (224, 32, 32), "yellow": (240, 192, 32), "green": (32, 192, 64)}
+
+
+class _BirdsEye:
+    """The town drawn once by `draw_birdseye` (the project's map), then per frame a few pixels painted on a copy.
+
+    A full matplotlib draw costs about 0.3 s; painting the route, lights, agents and ego on cached pixels costs
+    well under a millisecond, so rendering every step stays cheap.
+    """
+
+    SIZE = 480  # pixels along the town's longer side
+
+    def __init__(self, geometry: Any) -> None:
+        from matplotlib.backends.backend_agg import FigureCanvasAgg
+        from matplotlib.figure import Figure
+
+        from yawil.sim.town.birdseye import draw_birdseye
+
+        self.geometry = geometry
+        xmin, ymin, xmax, ymax = geometry.bounds
+        span = max(xmax - xmin, ymax - ymin)
+        dpi = 100
+        fig = Figure(figsize=(self.SIZE * (xmax - xmin) / span / dpi, self.SIZE * (ymax - ymin) / span / dpi), dpi=dpi)
+        canvas = FigureCanvasAgg(fig)
+        ax = fig.add_axes((0.0, 0.0, 1.0, 1.0))
+        draw_birdseye(geometry, ax=ax)
+        ax.set_title("")
+        ax.set_axis_off()
+        canvas.draw()
+        self.background = np.ascontiguousarray(np.asarray(canvas.buffer_rgba())[..., :3])
+        self.matrix = np.array(ax.transData.get_matrix())  # map metres -> display pixels (origin bottom left)
+        self.px_per_m = float(self.matrix[0, 0])
+        self._episode = self.background
+
+    def _display(self, xy: Any) -> np.ndarray:
+        """(N, 2) map points -> (N, 2) display coordinates (pixels, origin at the bottom left)."""
+        pts = np.asarray(xy, dtype=np.float64).reshape(-1, 2)
+        return np.asarray(pts @ self.matrix[:2, :2].T + self.matrix[:2, 2])
+
+    def _px(self, xy: Any) -> np.ndarray:
+        """(N, 2) map points -> (N, 2) integer (row, column) pixels."""
+        disp = self._display(xy)
+        rows = self.background.shape[0] - 1 - np.floor(disp[:, 1])
+        return np.column_stack((rows, np.floor(disp[:, 0]))).astype(np.int64)
+
+    def _dots(self, img: np.ndarray, rc: np.ndarray, color: tuple[int, int, int], r: int) -> None:
+        h, w = img.shape[:2]
+        for row, col in rc.tolist():
+            img[max(0, row - r) : min(h, row + r + 1), max(0, col - r) : min(w, col + r + 1)] = color
+
+    def _box(self, img: np.ndarray, x: float, y: float, yaw: float, length: float, width: float,
+             color: tuple[int, int, int]) -> None:
+        """Fill a rotated rectangle (at least a 3x3 pixel block, so small things stay visible)."""
+        ppm = self.px_per_m
+        half = 0.5 * math.hypot(length, width) * ppm + 2
+        (dx0, dy0), = self._display([x, y]).tolist()
+        h, w = img.shape[:2]
+        row, col = h - dy0, dx0  # fractional pixel position, rows counted from the top
+        r0, r1 = max(0, int(row - half)), min(h, int(row + half) + 1)
+        c0, c1 = max(0, int(col - half)), min(w, int(col + half) + 1)
+        if r0 >= r1 or c0 >= c1:
+            return
+        rr, cc = np.mgrid[r0:r1, c0:c1]
+        dx, dy = (cc + 0.5 - dx0) / ppm, (h - rr - 0.5 - dy0) / ppm  # pixel centres relative to (x, y), metres
+        c, s = math.cos(yaw), math.sin(yaw)
+        u, v = c * dx + s * dy, -s * dx + c * dy
+        inside = (np.abs(u) <= max(0.5 * length, 1.5 / ppm)) & (np.abs(v) <= max(0.5 * width, 1.5 / ppm))
+        img[r0:r1, c0:c1][inside] = color
+
+    def start(self, obs: Observation) -> None:
+        """A new episode: paint its route once onto a copy of the map."""
+        img = self.background.copy()
+        route = np.asarray(obs.route.xy, dtype=np.float64)
+        seg = np.linalg.norm(np.diff(route, axis=0), axis=1)
+        s = np.concatenate(([0.0], np.cumsum(seg)))
+        fine = np.linspace(0.0, s[-1], max(2, int(s[-1] * self.px_per_m * 2) + 1))  # half-pixel steps: no gaps
+        dense = np.column_stack((np.interp(fine, s, route[:, 0]), np.interp(fine, s, route[:, 1])))
+        self._dots(img, self._px(dense), _ROUTE, 1)
+        self._episode = img
+
+    def frame(self, world: EmbeddedWorld, trail: list[tuple[float, float]]) -> np.ndarray:
+        """This step's image: the episode's map, the ego's trail, light states, agents and the ego."""
+        img = self._episode.copy()
+        if trail:
+            self._dots(img, np.unique(self._px(trail), axis=0), _TRAIL, 0)
+        states = world.light_states()
+        for lp in self.geometry.light_posts:
+            color = _LIGHTS.get(states.get(lp.id, ""))
+            if color is not None:
+                self._dots(img, self._px(np.array([lp.x, lp.y])), color, 2)
+        from matplotlib.colors import to_rgb
+
+        for a in world.actor_views(radius=math.inf):
+            rgb = tuple(int(round(255 * v)) for v in to_rgb(a.color))
+            self._box(img, a.x, a.y, a.yaw, a.length, a.width, (rgb[0], rgb[1], rgb[2]))
+        ego = world.ego_view()
+        self._box(img, ego.x, ego.y, ego.yaw, ego.length, ego.width, _EGO)
+        nose = np.array([[ego.x + d * math.cos(ego.yaw), ego.y + d * math.sin(ego.yaw)]
+                         for d in np.linspace(0.0, 6.0, 13)])
+        self._dots(img, self._px(nose), _EGO, 0)
+        return img

@@ -6,6 +6,8 @@ from __future__ import annotations
 import argparse
 import csv
 import math
+import os
+import signal
 from dataclasses import fields
 from pathlib import Path
 from typing import Any
@@ -184,26 +186,53 @@ def test_budget_stop_mid_epoch_then_resume(tmp_path: Path) -> None:
         train(small(tmp_path, "b"), splits=splits())
 
 
-def test_interrupt_saves_and_resume_continues(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+def test_a_signal_stops_between_steps_and_resume_is_exact(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                          sig: int) -> None:
+    """Ctrl-C or SIGTERM during a step (here: while its batch is prepared) lets the step finish, saves, and
+    the resumed run ends with the uninterrupted run's weights, BatchNorm statistics included."""
+    import yawil.train as train_module
+
+    full = train(small(tmp_path, "full", epochs=1), splits=splits(64))  # 4 batches of 16
+    real_step = train_module.prepare_batch
+    calls = {"n": 0}
+
+    def signal_on_third_batch(*args: Any, **kwargs: Any) -> Any:
+        calls["n"] += 1
+        if calls["n"] == 3:
+            os.kill(os.getpid(), sig)
+        return real_step(*args, **kwargs)
+
+    monkeypatch.setattr(train_module, "prepare_batch", signal_on_third_batch)
+    with pytest.raises(KeyboardInterrupt):
+        train(small(tmp_path, "i", epochs=1), splits=splits(64))
+    assert load_checkpoint(tmp_path / "i" / "last.pt")["position"]["step"] == 3  # the step under way finished
+    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # handlers are given back
+    monkeypatch.setattr(train_module, "prepare_batch", real_step)
+    resumed = train(small(tmp_path, "i", epochs=1), resume=True, splits=splits(64))
+    assert (resumed.epochs_done, resumed.steps) == (1, 4)
+    a, b = _weights(Path(full.out) / "last.pt"), _weights(tmp_path / "i" / "last.pt")
+    for key in a:
+        assert torch.equal(a[key], b[key]), key
+
+
+def test_a_second_ctrl_c_stops_at_once_without_saving(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     import yawil.train as train_module
 
     real_step = train_module.prepare_batch
     calls = {"n": 0}
 
-    def interrupt_on_third_batch(*args: Any, **kwargs: Any) -> Any:
+    def two_signals(*args: Any, **kwargs: Any) -> Any:
         calls["n"] += 1
-        if calls["n"] == 3:
-            raise KeyboardInterrupt
+        if calls["n"] == 2:
+            os.kill(os.getpid(), signal.SIGINT)
+            os.kill(os.getpid(), signal.SIGINT)
         return real_step(*args, **kwargs)
 
-    monkeypatch.setattr(train_module, "prepare_batch", interrupt_on_third_batch)
+    monkeypatch.setattr(train_module, "prepare_batch", two_signals)
     with pytest.raises(KeyboardInterrupt):
-        train(small(tmp_path, "i", epochs=1), splits=splits(64))  # 4 batches of 16
-    saved = load_checkpoint(tmp_path / "i" / "last.pt")
-    assert saved["position"]["step"] == 2  # the two finished steps are kept
-    monkeypatch.setattr(train_module, "prepare_batch", real_step)
-    resumed = train(small(tmp_path, "i", epochs=1), resume=True, splits=splits(64))
-    assert (resumed.epochs_done, resumed.steps) == (1, 4)
+        train(small(tmp_path, "j", epochs=1), splits=splits(64))
+    assert not (tmp_path / "j" / "last.pt").exists()  # a half-done step is never saved
 
 
 @pytest.fixture(scope="module")

@@ -23,7 +23,7 @@ import tempfile
 import threading
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
-from contextlib import AbstractContextManager, nullcontext
+from contextlib import AbstractContextManager, contextmanager, nullcontext
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
@@ -208,10 +208,13 @@ def _is_num(v: Any) -> bool:
 
 def write_text_atomic(path: Path, text: str | bytes) -> None:
     """Write to a temporary file in the same folder and rename: the old file survives a crash."""
+    from yawil.fileio import default_file_mode
+
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:
+            os.fchmod(f.fileno(), default_file_mode())  # mkstemp makes 0600
             f.write(text.encode() if isinstance(text, str) else text)
         os.replace(tmp, path)
     except BaseException:
@@ -714,8 +717,6 @@ def _train(cfg: TrainConfig, resume: bool, splits: tuple[Any, Any, Mapping[str, 
         if step in keep_at:
             save_checkpoint(snapshot(), out / f"step_{step:06d}.pt")
 
-    if threading.current_thread() is threading.main_thread():
-        signal.signal(signal.SIGTERM, _raise_interrupt)  # a kill saves like Ctrl-C
     model.train()
     n_batches = 0
     if len(train_ds) == 0:
@@ -736,16 +737,24 @@ def _train(cfg: TrainConfig, resume: bool, splits: tuple[Any, Any, Mapping[str, 
             disable=not cfg.progress, unit="batch", dynamic_ncols=True,
         )  # fmt: skip
         try:
-            stop = _train_epoch(model, loader, optimizer, scaler, norm, kind, uses_command, cfg, runtime, pos, writer, bar,
-                                started, keep)
-        except KeyboardInterrupt:
-            # Ctrl-C (or SIGTERM, see below): keep what was learned; --resume continues from here
+            with _stop_between_steps():
+                stop = _train_epoch(model, loader, optimizer, scaler, norm, kind, uses_command, cfg, runtime, pos, writer,
+                                    bar, started, keep)
+        except _StopRequested:
+            # Ctrl-C or SIGTERM, taken between two steps: the state saved is exactly that after pos.step steps,
+            # so --resume gives the weights of an uninterrupted run
             bar.close()
             if pos.batch > 0:
                 end_of_period(partial=True)
             writer.close()
             plot_losses(out, metrics)
             print(f"interrupted at step {pos.step}; resume with --resume", file=sys.stderr)
+            raise KeyboardInterrupt(f"stopped at step {pos.step}") from None
+        except KeyboardInterrupt:
+            # a second Ctrl-C stops mid-step: the weights may be half-updated, so nothing is saved
+            bar.close()
+            writer.close()
+            print(f"stopped at once; --resume continues from {out / 'last.pt'} as last saved", file=sys.stderr)
             raise
         bar.close()
         if stop:
@@ -759,8 +768,41 @@ def _train(cfg: TrainConfig, resume: bool, splits: tuple[Any, Any, Mapping[str, 
     return TrainResult(out, pos.epoch, pos.step, pos.best_val, metrics, stopped_by)
 
 
-def _raise_interrupt(signum: int, frame: Any) -> None:
-    raise KeyboardInterrupt(f"signal {signum}")
+class _StopRequested(Exception):
+    """Raised between two optimiser steps after a Ctrl-C or SIGTERM."""
+
+
+_STOP = {"requested": False}
+
+
+@contextmanager
+def _stop_between_steps() -> Iterator[None]:
+    """Ctrl-C and SIGTERM ask the loop to stop after the current step instead of interrupting it: a step cut
+    in the middle has already moved BatchNorm's running statistics (or some of the weights), and a checkpoint
+    of that would not resume to an uninterrupted run's weights. A second signal stops at once, unsaved."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def handler(signum: int, frame: Any) -> None:
+        if _STOP["requested"]:
+            raise KeyboardInterrupt(f"signal {signum}")
+        _STOP["requested"] = True
+        print("stopping after this step (press Ctrl-C again to stop at once, unsaved)", file=sys.stderr, flush=True)
+
+    _STOP["requested"] = False
+    previous = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
+    try:
+        yield
+    finally:
+        for sig, old in previous.items():
+            signal.signal(sig, old)
+        _STOP["requested"] = False
+
+
+def _check_stop() -> None:
+    if _STOP["requested"]:
+        raise _StopRequested
 
 
 def _train_epoch(
@@ -804,6 +846,7 @@ def _train_epoch(
             writer.add_scalar("train/lr", optimizer.param_groups[0]["lr"], pos.step)
         if cfg.max_minutes is not None and (time.monotonic() - started) / 60.0 >= cfg.max_minutes:
             return "max_minutes"
+        _check_stop()
     return None
 
 

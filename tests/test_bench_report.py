@@ -1,13 +1,39 @@
-"""`yawil report` on synthetic results folders: tables shaped as the paper's, Markdown and HTML."""
+"""`yawil report` on synthetic results folders: tables shaped as the paper's, Markdown and HTML, summary.json
+as numbers, what made the report, file modes."""
 
 from __future__ import annotations
 
 import json
+import os
+import re
+import subprocess
+from collections.abc import Iterator
 from pathlib import Path
 
+import pytest
+
+from yawil import __version__
 from yawil.bench.records import EpisodeLog, check_run_info
-from yawil.bench.report import load_results, success_table, summary_table, violations_table, write_report
+from yawil.bench.report import (
+    git_commit,
+    load_results,
+    provenance,
+    success_table,
+    summary_table,
+    violations_table,
+    write_report,
+)
 from yawil.cli import main
+from yawil.fileio import default_file_mode, write_atomic
+
+
+@pytest.fixture
+def umask_022() -> Iterator[None]:
+    old = os.umask(0o022)
+    try:
+        yield
+    finally:
+        os.umask(old)
 
 
 def _write(folder: Path, label: str, ok_by_seed: dict[str, list[int]]) -> None:
@@ -55,9 +81,117 @@ def test_tables_and_files(tmp_path: Path) -> None:
     assert "Table III" in md and "Table IV" in md and "success.png" in md
     page = paths["report.html"].read_text()
     assert page.count("data:image/png;base64,") >= 2 and "<table>" in page and "src='success.png'" not in page
-    summary = json.loads(paths["summary.json"].read_text())
-    assert summary["tables"][0]["rows"][0][0] == "Straight"
     assert (tmp_path / "rep" / "trajectories_training.png").stat().st_size > 1000
+
+
+def test_summary_json_holds_numbers(tmp_path: Path) -> None:
+    a, b = tmp_path / "a", tmp_path / "b"
+    _write(a, "expert", {"straight": [4, 3, 4, 4, 4], "dense": [4, 3, 2]})
+    _write(b, "yilratt", {"straight": [1, 2, 3, 2, 1], "dense": [0, 1, 2]})
+    paths = write_report([a, b], tmp_path / "rep")
+    text = paths["summary.json"].read_text(encoding="utf-8")
+    assert "NaN" not in text  # strict JSON: an undefined figure is null
+    summary = json.loads(text)
+    rows = json.dumps([summary[k]["rows"] for k in ("success", "violations", "outcomes", "summary")])
+    assert "±" not in rows and "n/a" not in rows  # numbers, not the formatted cells
+    assert summary["results"] == [
+        {"agent": "expert", "folder": str(a), "episodes": 64},
+        {"agent": "yilratt", "folder": str(b), "episodes": 64},
+    ]
+    cells = {(r["task"], r["condition"], r["agent"]): r for r in summary["success"]["rows"]}
+    straight = cells["straight", "training", "expert"]
+    assert straight["over_seeds"] == "best" and straight["success_pct"]["value"] == 100.0
+    assert straight["success_pct"]["std"] is None and straight["success_pct"]["n_seeds"] == 5
+    dense = cells["dense", "new-town-weather", "expert"]["success_pct"]
+    assert dense["value"] == pytest.approx(75.0) and dense["std"] == pytest.approx(20.412, abs=1e-3)
+    assert dense["per_seed"] == [100.0, 75.0, 50.0]
+    viol = {(r["task"], r["condition"], r["agent"]): r for r in summary["violations"]["rows"]}
+    lights = viol["dense", "training", "yilratt"]["red_light_ratio"]
+    assert lights["per_seed"][0] is None  # seed 0: no successful episode, undefined (null, not NaN)
+    assert lights["value"] == pytest.approx(0.375)
+    assert viol["dense", "training", "expert"]["lane_violations_per_km"]["value"] == pytest.approx(2.0)
+    yil = summary["summary"]["rows"][1]
+    assert yil["agent"] == "yilratt" and yil["episodes"] == 64 and yil["success"] == 24
+    assert yil["failures"]["collision_vehicle"] == 40 and yil["lane_violations_per_km"] == pytest.approx(2.0)
+    outcome = summary["outcomes"]["rows"][0]
+    assert isinstance(outcome["episodes"], int) and outcome["km_driven"] == pytest.approx(outcome["episodes"] * 0.5)
+    assert summary["plots"][0] == "success.png"
+    assert "Table III" in summary["success"]["title"] and summary["success"]["note"]
+
+
+def test_reports_say_what_made_them(tmp_path: Path) -> None:
+    a = tmp_path / "a"
+    _write(a, "expert", {"regular": [4, 4, 2]})
+    command = "yawil report a --out 'r e p'"
+    paths = write_report([a], tmp_path / "rep", command=command)
+    prov = json.loads(paths["summary.json"].read_text())["provenance"]
+    assert prov["yawil_version"] == __version__ and prov["command"] == command
+    assert re.fullmatch(r"\d{4}-\d\d-\d\dT\d\d:\d\d:\d\dZ", prov["date_utc"])
+    assert prov["git_commit"] == git_commit()
+    date = prov["date_utc"].replace("T", " ").rstrip("Z")
+    md = paths["report.md"].read_text()
+    assert f"Made by yawil {__version__} (commit {prov['git_commit']}) on {date} UTC with `{command}`." in md
+    page = paths["report.html"].read_text()
+    assert f"yawil {__version__}" in page and f"{date} UTC" in page and prov["git_commit"] in page
+    assert "<code>yawil report a --out &#39;r e p&#39;</code>" in page  # escaped by the template
+
+
+def test_html_has_no_markdown_and_escapes(tmp_path: Path) -> None:
+    a = tmp_path / "a"
+    _write(a, "<b>agent</b> & co", {"regular": [4, 4, 2]})
+    page = write_report([a], tmp_path / "rep", command="yawil report a")["report.html"].read_text()
+    assert "`" not in page
+    assert "<b>agent</b>" not in page and "&lt;b&gt;agent&lt;/b&gt; &amp; co" in page
+    assert f"<code>{a}</code>" in page
+    assert page.startswith("<!DOCTYPE html>") and page.count("<table>") == 4
+
+
+def test_git_commit(tmp_path: Path) -> None:
+    commit = git_commit()
+    assert commit == "unknown" or re.fullmatch(r"[0-9a-f]{40}(-dirty)?", commit)
+    (tmp_path / "__init__.py").write_text("")
+    assert git_commit(tmp_path) == "unknown"  # not a git checkout
+    git = ["git", "-C", str(tmp_path), "-c", "user.name=t", "-c", "user.email=t@t", "-c", "commit.gpgsign=false"]
+    try:
+        subprocess.run([*git, "init", "-q"], check=True, capture_output=True)
+    except (OSError, subprocess.CalledProcessError):
+        pytest.skip("no usable git")
+    assert git_commit(tmp_path) == "unknown"  # __init__.py not tracked: not run from this checkout
+    subprocess.run([*git, "add", "__init__.py"], check=True)
+    subprocess.run([*git, "commit", "-q", "-m", "x"], check=True)
+    head = subprocess.run([*git, "rev-parse", "HEAD"], check=True, capture_output=True, text=True).stdout.strip()
+    assert git_commit(tmp_path) == head
+    (tmp_path / "__init__.py").write_text("x = 1\n")
+    assert git_commit(tmp_path) == f"{head}-dirty"
+
+
+def test_provenance_command_default() -> None:
+    prov = provenance()
+    assert prov["command"] and prov["command"] != "unknown"
+
+
+def test_outputs_readable_by_others(tmp_path: Path, umask_022: None) -> None:
+    a = tmp_path / "a"
+    _write(a, "expert", {"regular": [4, 4, 2]})
+    paths = write_report([a], tmp_path / "rep", command="yawil report a")
+    assert {"report.md", "report.html", "summary.json", "success.png"} <= set(paths)
+    for p in paths.values():
+        assert p.stat().st_mode & 0o777 == 0o644, p
+    assert not [p for p in (tmp_path / "rep").iterdir() if p.name.startswith(".")]  # no temporary left
+
+
+def test_write_atomic_mode(tmp_path: Path) -> None:
+    old = os.umask(0o027)
+    try:
+        assert default_file_mode() == 0o640
+        p = write_atomic(tmp_path / "sub" / "f.txt", "é")
+        assert p.read_bytes() == "é".encode() and p.stat().st_mode & 0o777 == 0o640
+        os.umask(0o022)
+        assert default_file_mode() == 0o644
+        write_atomic(p, b"\x00")
+        assert p.read_bytes() == b"\x00" and p.stat().st_mode & 0o777 == 0o644
+    finally:
+        os.umask(old)
 
 
 def test_cli_report(tmp_path: Path, capsys) -> None:  # type: ignore[no-untyped-def]

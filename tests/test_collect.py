@@ -7,6 +7,7 @@ they check the collector's own logic in well under a second; the last ones use t
 from __future__ import annotations
 
 import math
+import os
 from pathlib import Path
 
 import h5py
@@ -207,6 +208,32 @@ def test_resume_never_duplicates_and_results_are_deterministic(tmp_path: Path) -
     with pytest.raises(ValueError, match="config differs"):
         collect(tmp_path / "a", town="line", weathers="ClearNoon", episodes=1, progress=False, world_factory=line_world,
                 config=cfg)
+
+
+def test_resume_recollects_damaged_episodes(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Truncated, missing and header-zeroed files are not 'already present': a resume collects them again,
+    identically (episodes are deterministic in their seed), and the dataset checks OK afterwards."""
+    from yawil.data.check import check_dataset
+
+    cfg = small_cfg()
+    kw = dict(town="line", weathers="ClearNoon,WetNoon", episodes=3, progress=False, world_factory=line_world, config=cfg)
+    collect(tmp_path / "a", **kw)
+    eps = tmp_path / "a" / "episodes"
+    before = {p.name: p.read_bytes() for p in eps.glob("ep_*.h5")}
+    with open(eps / "ep_000000.h5", "r+b") as f:
+        f.truncate(os.path.getsize(eps / "ep_000000.h5") - 500)
+    (eps / "ep_000001.h5").unlink()
+    with open(eps / "ep_000002.h5", "r+b") as f:
+        f.write(b"\0" * 512)
+    assert not check_dataset(tmp_path / "a").ok
+    capsys.readouterr()
+    s = collect(tmp_path / "a", **kw)
+    assert (s.episodes_written, s.episodes_skipped) == (3, 0)
+    assert capsys.readouterr().err.count("collect: re-collecting episodes/ep_00000") == 3
+    assert check_dataset(tmp_path / "a").ok
+    with h5py.File(eps / "ep_000002.h5") as fa:
+        assert len(fa["image"]) == read_manifest(tmp_path / "a").entry(2).frames
+    assert {p.name for p in eps.glob("ep_*.h5")} == set(before)
 
 
 def test_frame_budget_stops_early(tmp_path: Path) -> None:

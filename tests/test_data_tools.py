@@ -51,6 +51,21 @@ def test_check_names_truncated_and_nan_files(tmp_path: Path, capsys: pytest.Capt
     assert "BAD episodes/ep_000001.h5" in out and out.rstrip().endswith("FAILED")
 
 
+def test_check_catches_a_flipped_byte_that_still_decodes(tmp_path: Path) -> None:
+    """64 bytes inverted inside an image chunk: lzf may still decode it, the fletcher32 checksum does not pass."""
+    m = write_synthetic_dataset(tmp_path, episodes=2, frames=6, k=K)
+    path = m.path_of(m.episodes[0])
+    with h5py.File(path, "r") as f:
+        info = f["image"].id.get_chunk_info(2)
+    with open(path, "r+b") as f:
+        f.seek(info.byte_offset + info.size // 2)
+        data = f.read(64)
+        f.seek(info.byte_offset + info.size // 2)
+        f.write(bytes(255 - b for b in data))
+    bad = check_dataset(tmp_path).bad
+    assert list(bad) == ["episodes/ep_000000.h5"] and "cannot be decoded" in bad["episodes/ep_000000.h5"][0]
+
+
 def test_check_out_of_range_and_missing(tmp_path: Path) -> None:
     m = write_synthetic_dataset(tmp_path, episodes=2, frames=5, k=K)
     with h5py.File(m.path_of(m.episodes[0]), "r+") as f:

@@ -17,6 +17,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from yawil.fileio import default_file_mode
+
 FORMAT = "yawil-checkpoint"
 FORMAT_VERSION = 1
 
@@ -150,6 +152,7 @@ def save_checkpoint(ckpt: dict[str, Any], path: str | os.PathLike[str]) -> Path:
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:
+            os.fchmod(f.fileno(), default_file_mode())  # mkstemp makes 0600
             torch.save(ckpt, f)
             f.flush()
             os.fsync(f.fileno())

@@ -99,6 +99,7 @@ def export_onnx(checkpoint: str | Path, onnx_path: str | Path, opset: int = OPSE
     import torch
 
     from yawil.checkpoint import load_checkpoint, model_from_checkpoint
+    from yawil.fileio import default_file_mode
 
     if opset < 17:
         raise ValueError(f"--opset {opset}: expected >= 17")
@@ -135,6 +136,7 @@ def export_onnx(checkpoint: str | Path, onnx_path: str | Path, opset: int = OPSE
             entry.key, entry.value = key, value
         onnx.checker.check_model(proto)
         onnx.save(proto, tmp)
+        os.chmod(tmp, default_file_mode())  # mkstemp makes 0600
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)

@@ -64,7 +64,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("--model", help="model name (yawil models list); default yilratt")
+    p.add_argument("--model", help="model name, one of those `yawil models` lists (default yilratt)")
     p.add_argument("--data", nargs="+", metavar="DIR", help="dataset root(s) written by `yawil collect`")
     p.add_argument("--out", help="run folder (default runs/train)")
     p.add_argument("--config", metavar="YAML", help="settings file; command-line options override it")

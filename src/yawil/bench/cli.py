@@ -12,14 +12,70 @@ from collections.abc import Callable
 from typing import Any
 
 
+class ChoiceHelp(argparse.Action):
+    """-h/--help that prints the help of the positional choice given before it (`yawil bench routes --help`),
+    else the whole command's. The choices stay one positional argument (no sub-parsers), so that options
+    may come before or after it as they always could; each choice with its own help has a parser that only
+    prints it, built from the same option definitions as the command."""
+
+    def __init__(self, option_strings: list[str], dest: str = argparse.SUPPRESS, *, choice_dest: str,
+                 helps: dict[str, Callable[[str], argparse.ArgumentParser]], help: str | None = None) -> None:
+        super().__init__(option_strings, dest=dest, default=argparse.SUPPRESS, nargs=0, help=help)
+        self.choice_dest = choice_dest
+        self.helps = helps
+
+    def __call__(self, parser: argparse.ArgumentParser, namespace: argparse.Namespace, values: Any,
+                 option_string: str | None = None) -> None:
+        build = self.helps.get(getattr(namespace, self.choice_dest, None) or "")
+        (build(f"{parser.prog} ") if build else parser).print_help()
+        parser.exit()
+
+
+def add_choice_help(p: argparse.ArgumentParser, choice_dest: str,
+                    helps: dict[str, Callable[[str], argparse.ArgumentParser]]) -> None:
+    """Give `p` (made with add_help=False) a -h/--help that knows the choice of its positional `choice_dest`."""
+    p.add_argument("-h", "--help", action=ChoiceHelp, choice_dest=choice_dest, helps=helps,
+                   help=f"show this help message and exit; after {' or '.join(helps)}: that one's help")
+
+
+_ROUTE_ACTIONS: dict[str, str] = {
+    "routes": "Generate the route file of each town (src/yawil/bench/routes/<town>.json, or --routes-dir) with "
+    "the current planner.",
+    "validate": "Re-plan every route of each town's route file with the current planner: reachable, same length, "
+    "turns and class; fails naming the first route that no longer matches.",
+}
+
+
+def _add_route_options(p: argparse.ArgumentParser | argparse._ArgumentGroup, action: str | None) -> None:
+    """The options of `routes` (action='routes'), `validate`, or both (None, on the command itself)."""
+    prefix = "" if action else "routes/validate: "
+    p.add_argument("--town", default=None, help=f"{prefix}town01 | town02 | square (default: all three)")
+    p.add_argument("--routes-dir", default=None, help=f"{prefix}folder of route files (default: the package's)")
+    if action in (None, "routes"):
+        p.add_argument("--seed", type=int, default=0,
+                       help=f"{'routes: ' if action is None else ''}seed of the route draw (default 0)")
+
+
+def _route_action_parser(action: str) -> Callable[[str], argparse.ArgumentParser]:
+    def build(prog: str) -> argparse.ArgumentParser:
+        p = argparse.ArgumentParser(prog=f"{prog}{action}", description=_ROUTE_ACTIONS[action])
+        _add_route_options(p, action)
+        return p
+
+    return build
+
+
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:  # type: ignore[type-arg]
     p = subparsers.add_parser(
         "bench",
         help="run the CoRL2017 / NoCrash / square benchmark suites; manage route files",
         description="Run benchmark episodes (one JSON line each in OUT/episodes.jsonl, resumable), or "
         "`routes` to generate the route files, `validate` to check them with the current planner.",
+        add_help=False,
     )
-    p.add_argument("action", nargs="?", default="run", choices=("run", "routes", "validate"))
+    add_choice_help(p, "action", {a: _route_action_parser(a) for a in _ROUTE_ACTIONS})
+    p.add_argument("action", nargs="?", default="run", choices=("run", "routes", "validate"),
+                   help="run (default): drive the episodes; routes, validate: the route files")
     p.add_argument("--suite", default=None, help="corl2017 | nocrash | all | square (default nocrash)")
     p.add_argument("--preset", choices=sorted(PRESETS), default=None,
                    help="a fixed episode set: eval100 = all five tasks x 10 routes x both conditions, seed 0 "
@@ -55,9 +111,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--timeout", type=float, default=10.0,
                    help="--backend carla: seconds a client call may take before it counts as a simulator error "
                         "(default 10; map loads get at least 60)")
-    p.add_argument("--town", default=None, help="routes/validate: town01 | town02 | square (default: all three)")
-    p.add_argument("--routes-dir", default=None, help="routes/validate: folder of route files (default: the package's)")
-    p.add_argument("--seed", type=int, default=0, help="routes: seed of the route draw (default 0)")
+    _add_route_options(p, None)
     return p
 
 

@@ -3,6 +3,45 @@
 from __future__ import annotations
 
 import argparse
+from collections.abc import Callable
+
+from yawil.bench.cli import add_choice_help  # argparse only, like this module
+
+_DESCRIPTIONS: dict[str, str] = {
+    "square": "Collect on the square map, build the 3 datasets, train 12 models, drive the 32 turning tasks, "
+    "write table1.md (Table I). Every stage is skipped when its output exists.",
+    "noise": "Drive the models that passed every task of `square` again with yaw noise (guided) or wrong "
+    "commands (CIL), write table2.md (Table II). Every stage is skipped when its output exists.",
+}
+
+
+def _add_options(p: argparse.ArgumentParser, which: str | None) -> None:
+    """The options of `square`, `noise`, or both (None, on the command itself)."""
+    p.add_argument("--profile", default="quick", choices=("quick", "standard", "paper"),
+                   help="quick: minutes-scale smoke run; standard: about an hour on 2 cores, the figures of "
+                   "docs/benchmark.md; paper: the paper's budgets (default quick)")
+    p.add_argument("--out", default="results/square", help="experiment folder (default results/square)")
+
+    def tag(name: str) -> str:  # on the command itself, say which action an option is for
+        return f"{name}: " if which is None else ""
+
+    if which in (None, "square"):
+        p.add_argument("--seed", type=int, default=0,
+                       help=tag("square") + "seed of collection and training (default 0)")
+    if which in (None, "noise"):
+        p.add_argument("--noise-seeds", type=int, default=None,
+                       help=tag("noise") + "seeds per noise level instead of the profile's (the paper's 5)")
+        p.add_argument("--models", default=None,
+                       help=tag("noise") + "comma-separated methods to test instead of the passing ones")
+
+
+def _which_parser(which: str) -> Callable[[str], argparse.ArgumentParser]:
+    def build(prog: str) -> argparse.ArgumentParser:
+        p = argparse.ArgumentParser(prog=f"{prog}{which}", description=_DESCRIPTIONS[which])
+        _add_options(p, which)
+        return p
+
+    return build
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:  # type: ignore[type-arg]
@@ -12,16 +51,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         description="square: collect on the square map, build the 3 datasets, train 12 models, drive the 32 "
         "turning tasks, write table1.md. noise: drive the models that passed every task again with yaw noise "
         "(guided) or wrong commands (CIL), write table2.md. Every stage is skipped when its output exists.",
+        add_help=False,
     )
+    add_choice_help(p, "which", {w: _which_parser(w) for w in _DESCRIPTIONS})
     p.add_argument("which", choices=("square", "noise"))
-    p.add_argument("--profile", default="quick", choices=("quick", "standard", "paper"),
-                   help="quick: minutes-scale smoke run; standard: about an hour on 2 cores, the figures of "
-                   "docs/benchmark.md; paper: the paper's budgets (default quick)")
-    p.add_argument("--out", default="results/square", help="experiment folder (default results/square)")
-    p.add_argument("--seed", type=int, default=0, help="seed of collection and training (default 0)")
-    p.add_argument("--noise-seeds", type=int, default=None,
-                   help="noise: seeds per noise level instead of the profile's (the paper's 5)")
-    p.add_argument("--models", default=None, help="noise: comma-separated methods to test instead of the passing ones")
+    _add_options(p, None)
     return p
 
 

@@ -1,24 +1,32 @@
 """Tables shaped as the paper's (III: success rate; IV: lane and light violations) and plots, in Markdown and
-in one self-contained HTML page (images embedded as base64 PNG).
+in one self-contained HTML page (images embedded as base64 PNG), and the same figures as numbers in
+summary.json.
 
 Each results folder is one column (one agent). Cells follow the protocol: static tasks are the best of their
 seeds, dynamic tasks mean +- std over seeds; violations count successful episodes only (yawil.bench.metrics).
+Every output says what made it: the yawil version, the git commit, the command line and the date (UTC).
 """
 
 from __future__ import annotations
 
 import base64
-import html
 import io
 import json
+import math
+import os
+import shlex
+import subprocess
+import sys
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
+from datetime import datetime, timezone
 from pathlib import Path
 from typing import Any
 
-from yawil.bench.metrics import FAILURE_REASONS, failure_counts, task_success, task_violations
-from yawil.bench.records import RUN_FILE, iter_results, write_json_atomic
+from yawil.bench.metrics import FAILURE_REASONS, Stat, failure_counts, task_success, task_violations
+from yawil.bench.records import RUN_FILE, iter_results
 from yawil.bench.suites import CONDITIONS, TABLE_TASKS, TASKS
+from yawil.fileio import write_atomic
 
 
 @dataclass
@@ -64,23 +72,37 @@ def _present(sets: Sequence[ResultSet]) -> tuple[list[str], list[str]]:
 
 @dataclass
 class Table:
+    """A table as formatted text (`rows`, for Markdown and HTML) and as numbers (`records`, for summary.json)."""
+
     title: str
     header: list[str]
     rows: list[list[str]]
     note: str = ""
+    key: str = ""  # its name in summary.json
+    records: list[dict[str, Any]] = field(default_factory=list)
 
     def markdown(self) -> str:
-        lines = [f"### {self.title}", "", "| " + " | ".join(self.header) + " |", "|" + "---|" * len(self.header)]
-        lines += ["| " + " | ".join(r) + " |" for r in self.rows]
+        def line(cells: Sequence[str]) -> str:
+            return "| " + " | ".join(c.replace("|", "\\|") for c in cells) + " |"
+
+        lines = [f"### {self.title}", "", line(self.header), "|" + "---|" * len(self.header)]
+        lines += [line(r) for r in self.rows]
         if self.note:
             lines += ["", self.note]
         return "\n".join(lines) + "\n"
 
-    def html(self) -> str:
-        head = "".join(f"<th>{html.escape(h)}</th>" for h in self.header)
-        body = "".join("<tr>" + "".join(f"<td>{html.escape(c)}</td>" for c in r) + "</tr>" for r in self.rows)
-        note = f"<p class='note'>{html.escape(self.note)}</p>" if self.note else ""
-        return f"<h3>{html.escape(self.title)}</h3><table><tr>{head}</tr>{body}</table>{note}"
+    def summary(self) -> dict[str, Any]:
+        return {"title": self.title, "note": self.note, "rows": self.records}
+
+
+def _num(v: float | None) -> float | None:
+    """JSON has no NaN: an undefined figure is null."""
+    return None if v is None or math.isnan(v) else float(v)
+
+
+def _stat(st: Stat) -> dict[str, Any]:
+    return {"value": _num(st.value), "std": _num(st.std), "n_seeds": st.n_seeds,
+            "per_seed": [_num(v) for v in st.per_seed]}
 
 
 def _columns(sets: Sequence[ResultSet], conds: Sequence[str]) -> list[tuple[str, ResultSet]]:
@@ -96,6 +118,7 @@ def success_table(sets: Sequence[ResultSet]) -> Table:
     conds, tasks = _present(sets)
     cols = _columns(sets, conds)
     rows = []
+    records: list[dict[str, Any]] = []
     for t in tasks:
         task = TASKS[t]
         row = [task.title]
@@ -107,12 +130,14 @@ def success_table(sets: Sequence[ResultSet]) -> Table:
             stat = task_success(recs, task.dynamic)
             extra = "" if stat.n_seeds == task.default_seeds else f" ({stat.n_seeds} seed{'s' * (stat.n_seeds > 1)})"
             row.append(stat.format(2) + extra)
+            records.append({"task": t, "condition": c, "agent": rs.label,
+                            "over_seeds": "mean" if task.dynamic else "best", "success_pct": _stat(stat)})
         rows.append(row)
     note = (
         "Success rate in %. Static tasks: best of 5 seeds; dynamic tasks: mean ± population std over 3 seeds; "
         "a cell with another number of seeds says so. —: not run."
     )
-    return Table("Table III: navigation success rate (%)", _header(["Task"], cols), rows, note)
+    return Table("Table III: navigation success rate (%)", _header(["Task"], cols), rows, note, "success", records)
 
 
 def violations_table(sets: Sequence[ResultSet]) -> Table:
@@ -131,18 +156,28 @@ def violations_table(sets: Sequence[ResultSet]) -> Table:
                 lanes, lights = task_violations(recs)
                 row.append((lanes if metric.startswith("Lane") else lights).format(2))
             rows.append(row)
+    records: list[dict[str, Any]] = []
+    for t in tasks:
+        for c, rs in cols:
+            recs = rs.select(t, c)
+            if recs:
+                lanes, lights = task_violations(recs)
+                records.append({"task": t, "condition": c, "agent": rs.label,
+                                "lane_violations_per_km": _stat(lanes), "red_light_ratio": _stat(lights)})
     note = (
         "Successful episodes only, pooled per seed (entries into the opposite lane or off the road / km driven; "
         "red lights crossed / signalised stop lines passed), then mean ± population std over seeds; "
         "n/a: no successful episode (or no light passed)."
     )
-    return Table("Table IV: lane and traffic-light violations", _header(["Metric", "Task"], cols), rows, note)
+    return Table("Table IV: lane and traffic-light violations", _header(["Metric", "Task"], cols), rows, note,
+                 "violations", records)
 
 
 def outcome_table(sets: Sequence[ResultSet]) -> Table:
     """How the episodes ended, all seeds together: the failure reasons behind Table III."""
     conds, tasks = _present(sets)
     rows = []
+    records: list[dict[str, Any]] = []
     for c in conds:
         for t in tasks:
             for rs in sets:
@@ -156,8 +191,11 @@ def outcome_table(sets: Sequence[ResultSet]) -> Table:
                     + [str(counts.get(k, 0)) for k in FAILURE_REASONS]
                     + [str(counts["rear_end"]), f"{km:.1f}"]
                 )
+                records.append({"condition": c, "task": t, "agent": rs.label, "episodes": len(recs),
+                                "success": counts["success"], "failures": {k: counts.get(k, 0) for k in FAILURE_REASONS},
+                                "rear_end": counts["rear_end"], "km_driven": km})
     header = ["Condition", "Task", "Agent", "Episodes", "Success", *FAILURE_REASONS, "of which rear-end", "km driven"]
-    return Table("Episode outcomes (all seeds)", header, rows)
+    return Table("Episode outcomes (all seeds)", header, rows, key="outcomes", records=records)
 
 
 def summary_table(sets: Sequence[ResultSet]) -> Table:
@@ -165,6 +203,7 @@ def summary_table(sets: Sequence[ResultSet]) -> Table:
     from yawil.bench.metrics import lane_violations_per_km, light_violation_ratio
 
     rows = []
+    records: list[dict[str, Any]] = []
     for rs in sets:
         if not rs.records:
             continue
@@ -175,10 +214,13 @@ def summary_table(sets: Sequence[ResultSet]) -> Table:
             + [str(counts.get(k, 0)) for k in FAILURE_REASONS]
             + [str(counts["rear_end"]), f"{lanes:.2f}", f"{lights:.2f}"]
         )
+        records.append({"agent": rs.label, "episodes": len(rs.records), "success": counts["success"],
+                        "failures": {k: counts.get(k, 0) for k in FAILURE_REASONS}, "rear_end": counts["rear_end"],
+                        "lane_violations_per_km": _num(lanes), "red_light_ratio": _num(lights)})
     header = ["Agent", "Episodes", "Success", *FAILURE_REASONS, "of which rear-end",
               "lane violations / km (successful)", "red-light ratio (successful)"]
     return Table("Summary over all episodes", header, rows,
-                 "Violations pooled over the successful episodes of every task and condition.")
+                 "Violations pooled over the successful episodes of every task and condition.", "summary", records)
 
 
 # ----- plots -------------------------------------------------------------------------------------------------
@@ -288,19 +330,120 @@ def _map_figure(town: str) -> Any:
     return map_figure(town)
 
 
+# ----- provenance --------------------------------------------------------------------------------------------
+
+
+def git_commit(package_dir: str | Path | None = None) -> str:
+    """The commit of the git checkout this package runs from ('-dirty' after it if tracked files differ), else
+    'unknown' (an installed package, no git, or the package's files not tracked by the repository around it).
+
+    `package_dir` (default: yawil's own folder) must hold a tracked __init__.py."""
+    pkg = Path(package_dir) if package_dir is not None else Path(__file__).resolve().parent.parent  # src/yawil
+    env = {k: v for k, v in os.environ.items() if not k.startswith("GIT_")}  # this checkout, not a caller's
+
+    def git(*args: str) -> subprocess.CompletedProcess[str]:
+        return subprocess.run(["git", "-C", str(pkg), *args], capture_output=True, text=True, timeout=20, env=env)
+
+    try:
+        if git("ls-files", "--error-unmatch", "__init__.py").returncode != 0:
+            return "unknown"  # e.g. a copy in a virtual environment inside some repository
+        head = git("rev-parse", "HEAD")
+        if head.returncode != 0 or not head.stdout.strip():
+            return "unknown"
+        status = git("status", "--porcelain", "--untracked-files=no")
+    except (OSError, subprocess.SubprocessError):
+        return "unknown"
+    return head.stdout.strip() + ("-dirty" if status.returncode == 0 and status.stdout.strip() else "")
+
+
+def command_line() -> str:
+    """The command that runs: `yawil ...` when started as the yawil script, else the process's whole argv."""
+    if sys.argv and Path(sys.argv[0]).name == "yawil":
+        return shlex.join(["yawil", *sys.argv[1:]])
+    argv = list(getattr(sys, "orig_argv", None) or sys.argv)
+    return shlex.join(argv) if argv else "unknown"
+
+
+def provenance(command: str | None = None) -> dict[str, str]:
+    """What made a report: yawil version, git commit, command line and date (UTC, ISO 8601)."""
+    from yawil import __version__
+
+    return {
+        "yawil_version": __version__,
+        "git_commit": git_commit(),
+        "command": command if command is not None else command_line(),
+        "date_utc": datetime.now(timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
+    }
+
+
+def provenance_markdown(prov: Mapping[str, str]) -> str:
+    return (f"Made by yawil {prov['yawil_version']} (commit {prov['git_commit']}) on "
+            f"{prov['date_utc'].replace('T', ' ').rstrip('Z')} UTC with `{prov['command']}`.")
+
+
 # ----- writing -----------------------------------------------------------------------------------------------
 
-_CSS = (
-    "body{font-family:sans-serif;max-width:1200px;margin:2em auto;}table{border-collapse:collapse;margin:1em 0;}"
-    "td,th{border:1px solid #bbb;padding:3px 8px;text-align:center;font-size:13px;}th{background:#eee;}"
-    ".note{font-size:12px;color:#555;}img{max-width:100%;}"
-)
+_PAGE = """<!DOCTYPE html>
+<html lang="en">
+<head>
+<meta charset="utf-8">
+<title>yawil benchmark report</title>
+<style>
+body { font-family: sans-serif; max-width: 1200px; margin: 2em auto; }
+table { border-collapse: collapse; margin: 1em 0; }
+td, th { border: 1px solid #bbb; padding: 3px 8px; text-align: center; font-size: 13px; }
+th { background: #eee; }
+.note, .provenance { font-size: 12px; color: #555; }
+img { max-width: 100%; }
+</style>
+</head>
+<body>
+<h1>Benchmark report</h1>
+<p class="provenance">Made by yawil {{ prov.yawil_version }} (commit <code>{{ prov.git_commit }}</code>)
+on {{ date }} UTC with <code>{{ prov.command }}</code>.</p>
+<p>Results: {% for rs in sets %}{{ rs.label }} = <code>{{ rs.folder }}</code> ({{ rs.records | length }} episodes)
+{%- if not loop.last %}, {% endif %}{% endfor %}.</p>
+{% for t in tables %}
+<h3>{{ t.title }}</h3>
+<table>
+<thead><tr>{% for h in t.header %}<th>{{ h }}</th>{% endfor %}</tr></thead>
+<tbody>
+{% for row in t.rows %}<tr>{% for c in row %}<td>{{ c }}</td>{% endfor %}</tr>
+{% endfor %}</tbody>
+</table>
+{% if t.note %}<p class="note">{{ t.note }}</p>{% endif %}
+{% endfor %}
+{% for img in images %}
+<h3>{{ img.title }}</h3>
+<img alt="{{ img.title }}" src="data:image/png;base64,{{ img.b64 }}">
+{% endfor %}
+</body>
+</html>
+"""
+
+
+def render_html(sets: Sequence[ResultSet], tables: Sequence[Table], images: Sequence[tuple[str, str, bytes]],
+                prov: Mapping[str, str]) -> str:
+    """The self-contained page: Jinja2 with autoescaping, images inline as base64 PNG."""
+    import jinja2
+
+    env = jinja2.Environment(autoescape=True, undefined=jinja2.StrictUndefined, keep_trailing_newline=True)
+    pictures = [{"title": title, "b64": base64.b64encode(data).decode("ascii")} for _, title, data in images]
+    return env.from_string(_PAGE).render(
+        sets=sets, tables=tables, images=pictures, prov=prov, date=prov["date_utc"].replace("T", " ").rstrip("Z")
+    )
 
 
 def write_report(
-    folders: Sequence[str | Path], out: str | Path, trajectories: Mapping[str, str] | None = None
+    folders: Sequence[str | Path],
+    out: str | Path,
+    trajectories: Mapping[str, str] | None = None,
+    command: str | None = None,
 ) -> dict[str, Path]:
-    """Write report.md, report.html, the PNG plots and summary.json into `out`; returns their paths."""
+    """Write report.md, report.html, the PNG plots and summary.json into `out`; returns their paths.
+
+    `command` is the command line the reports name as their maker (default: this process's).
+    """
     sets = [load_results(f) for f in folders]
     if not sets:
         raise ValueError("report needs at least one results folder")
@@ -308,6 +451,7 @@ def write_report(
         if not rs.records:
             raise ValueError(f"{rs.folder}: no episode records yet")
     _unique_labels(sets)
+    prov = provenance(command)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     tables = [success_table(sets), violations_table(sets), outcome_table(sets), summary_table(sets)]
@@ -319,33 +463,19 @@ def write_report(
             images.append((f"trajectories_{c}.png", f"Trajectories, {CONDITIONS[c].title}", png))
     paths: dict[str, Path] = {}
     for name, _title, data in images:
-        p = out / name
-        tmp = p.with_name(f".{name}.tmp")
-        tmp.write_bytes(data)
-        tmp.replace(p)
-        paths[name] = p
+        paths[name] = write_atomic(out / name, data)
     sources = ", ".join(f"{rs.label} = `{rs.folder}` ({len(rs.records)} episodes)" for rs in sets)
-    md = ["# Benchmark report", "", f"Results: {sources}.", ""]
+    md = ["# Benchmark report", "", provenance_markdown(prov), "", f"Results: {sources}.", ""]
     md += [t.markdown() for t in tables]
     md += [f"![{title}]({name})\n" for name, title, _ in images]
-    _write_text(out / "report.md", "\n".join(md))
-    body = [f"<h1>Benchmark report</h1><p>Results: {html.escape(sources)}.</p>"]
-    body += [t.html() for t in tables]
-    for _name, title, data in images:
-        b64 = base64.b64encode(data).decode("ascii")
-        body.append(f"<h3>{html.escape(title)}</h3><img alt='{html.escape(title)}' src='data:image/png;base64,{b64}'>")
-    page = f"<!DOCTYPE html><html><head><meta charset='utf-8'><title>yawil benchmark report</title><style>{_CSS}</style></head><body>{''.join(body)}</body></html>\n"
-    _write_text(out / "report.html", page)
+    paths["report.md"] = write_atomic(out / "report.md", "\n".join(md))
+    paths["report.html"] = write_atomic(out / "report.html", render_html(sets, tables, images, prov))
     summary = {
-        "folders": [str(rs.folder) for rs in sets],
-        "tables": [{"title": t.title, "header": t.header, "rows": t.rows} for t in tables],
+        "provenance": prov,
+        "results": [{"agent": rs.label, "folder": str(rs.folder), "episodes": len(rs.records)} for rs in sets],
+        **{t.key: t.summary() for t in tables},
+        "plots": [name for name, _, _ in images],
     }
-    write_json_atomic(out / "summary.json", summary)
-    paths.update({"report.md": out / "report.md", "report.html": out / "report.html", "summary.json": out / "summary.json"})
+    text = json.dumps(summary, indent=2, allow_nan=False, ensure_ascii=False) + "\n"
+    paths["summary.json"] = write_atomic(out / "summary.json", text)
     return paths
-
-
-def _write_text(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text, encoding="utf-8")
-    tmp.replace(path)

@@ -9,8 +9,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p = subparsers.add_parser(
         "report",
         help="tables (as the paper's III and IV) and plots from benchmark results",
-        description="Build report.md, report.html (self-contained) and PNG plots from results folders written "
-        "by `yawil bench`; each folder is one column (one agent).",
+        description="Build report.md, report.html (self-contained), summary.json (the same figures as numbers) "
+        "and PNG plots from results folders written by `yawil bench`; each folder is one column (one agent). "
+        "Each report names the yawil version, git commit, command line and date (UTC) that made it.",
     )
     p.add_argument("results", nargs="+", help="results folders (each holds episodes.jsonl)")
     p.add_argument("--out", default="report", help="output folder (default: report)")

@@ -15,6 +15,7 @@ from __future__ import annotations
 import math
 import os
 import queue
+import sys
 import time
 from collections import deque
 from collections.abc import Callable, Iterator, Sequence
@@ -563,6 +564,7 @@ def collect(
     world_factory: WorldFactory = embedded_world,
     learner: Learner | None = None,
     desc: str = "collect",
+    verify: bool = False,
     **overrides: Any,
 ) -> CollectSummary:
     """Collect expert episodes into the dataset at `out` until it holds `frames` frames (or `episodes` done).
@@ -571,20 +573,21 @@ def collect(
     overrides (e.g. vehicles=(30, 30)). Resumable: run it again and it continues where it stopped.
     `world_factory` makes each process's simulator; with workers > 1 it must be picklable (a module-level
     function), as spawned processes import it. `learner` makes it an on-policy (DAgger) collection.
-    One process at a time writes a dataset (yawil.locking).
+    One process at a time writes a dataset (yawil.locking). On resume, episode files that are missing,
+    truncated or unreadable are dropped and collected again (`verify`: decode every image too).
     """
     from yawil.locking import folder_lock
 
     with folder_lock(out, "dataset"):
         return _collect(out, town, weathers, frames, workers, seed, episodes, config, guidance, expert_config,
-                        progress, world_factory, learner, desc, **overrides)
+                        progress, world_factory, learner, desc, verify, **overrides)
 
 
 def _collect(
     out: str | os.PathLike[str], town: str, weathers: Sequence[str] | str, frames: int | None, workers: int,
     seed: int, episodes: int | None, config: CollectConfig | None, guidance: GuidanceConfig | None,
     expert_config: ExpertConfig | None, progress: bool, world_factory: WorldFactory, learner: Learner | None,
-    desc: str, **overrides: Any,
+    desc: str, verify: bool, **overrides: Any,
 ) -> CollectSummary:
     from yawil.sim.weather import weather_set
 
@@ -603,6 +606,10 @@ def _collect(
     out = str(out)
     t0 = time.perf_counter()
     writer = DatasetWriter(out, dataset_config(cfg, gcfg, ecfg, learner))  # creates, or checks the config on resume
+    from yawil.data.check import remove_bad_episodes
+
+    for line in remove_bad_episodes(out, images=verify):  # a damaged episode is collected again, not skipped
+        print(f"collect: re-collecting {line}", file=sys.stderr)
     manifest = read_manifest(out)
     done = set(manifest.episode_ids())
     summary = CollectSummary(out=out, dataset_frames=manifest.frames)

@@ -37,32 +37,42 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
         help="drive the expert on random routes and record a training dataset",
         description=(
             "Drive the privileged expert on random routes of a town and record camera frames with the expert's "
-            "controls, speed, command and the three guidance vectors. Steering noise is applied on about 10%% "
-            "of the frames; the label stays the expert's own control. Running the same command again resumes "
-            "(episodes already in the dataset are skipped). See docs/expert.md."
+            "controls, speed, command and the three guidance vectors. Steering noise is applied on about 10% "
+            "of the frames (--noise); the label stays the expert's own control. Running the same command again "
+            "resumes (episodes already in the dataset are skipped). See docs/expert.md."
         ),
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
-    p.add_argument("--town", default="town01", help="town01, town02, square or a layout JSON file")
-    p.add_argument("--weathers", default="train", help="'train', 'test', 'all' or comma-separated weather names")
+    p.add_argument("--town", default="town01", help="town01, town02, square or a layout JSON file (default town01)")
+    p.add_argument("--weathers", default="train",
+                   help="'train', 'test', 'all' or comma-separated weather names (default train)")
     budget = p.add_argument_group("budget (the first one reached stops the run)")
     budget.add_argument("--frames", type=int, default=None,
                         help="stop once the dataset holds this many frames (default 200000 unless --episodes)")
     budget.add_argument("--episodes", type=int, default=None, help="episode indices 0..N-1 of this seed")
-    p.add_argument("--out", required=True, help="dataset directory (created, or resumed)")
-    p.add_argument("--workers", type=int, default=1, help="parallel processes (each runs its own simulator)")
-    p.add_argument("--seed", type=int, default=0, help="episode ids are seed*100000+index")
-    p.add_argument("--vehicles", type=_range, default=(10, 30), metavar="N|LO-HI", help="vehicles per episode")
-    p.add_argument("--pedestrians", type=_range, default=(5, 20), metavar="N|LO-HI", help="pedestrians per episode")
-    p.add_argument("--min-route-length", type=float, default=200.0, help="metres")
-    p.add_argument("--noise", type=_fraction, default=0.10, help="fraction of frames with a steering perturbation")
-    p.add_argument("--noise-amplitude", type=_fraction, default=0.5, help="perturbation drawn from U[-a, a]")
-    p.add_argument("--straight-keep", type=_fraction, default=0.5, help="fraction of frames kept on long straights")
+    p.add_argument("--out", required=True, help="dataset directory (created, or resumed); required")
+    p.add_argument("--workers", type=int, default=1,
+                   help="parallel processes, each running its own simulator (default 1)")
+    p.add_argument("--seed", type=int, default=0, help="episode ids are seed*100000+index (default 0)")
+    p.add_argument("--vehicles", type=_range, default=(10, 30), metavar="N|LO-HI",
+                   help="vehicles per episode: N, or LO-HI drawn uniformly per episode (default 10-30)")
+    p.add_argument("--pedestrians", type=_range, default=(5, 20), metavar="N|LO-HI",
+                   help="pedestrians per episode: N, or LO-HI drawn uniformly per episode (default 5-20)")
+    p.add_argument("--min-route-length", type=float, default=200.0, help="metres (default 200)")
+    p.add_argument("--noise", type=_fraction, default=0.10,
+                   help="fraction of frames with a steering perturbation (default 0.1)")
+    p.add_argument("--noise-amplitude", type=_fraction, default=0.5,
+                   help="perturbation drawn from U[-a, a] (default 0.5)")
+    p.add_argument("--straight-keep", type=_fraction, default=0.5,
+                   help="fraction of frames kept on long straights (default 0.5)")
     p.add_argument("--blocked-keep-every", type=int, default=10,
-                   help="keep every Nth frame once stopped for more than 2 s")
+                   help="keep every Nth frame once stopped for more than 2 s (default 10)")
     p.add_argument("--on-collision", choices=("trim", "keep", "discard"), default="trim",
-                   help="trim: keep the episode without its last 2 s; keep: all frames; discard: drop the episode")
+                   help="trim: keep the episode without its last 2 s; keep: all frames; discard: drop the episode "
+                   "(default trim)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
+    p.add_argument("--verify", action="store_true",
+                   help="on resume, decode every stored image and re-collect the episodes that fail (a resume always "
+                        "re-collects missing, truncated or unreadable episode files)")
     p.add_argument("--backend", default="embedded", choices=("embedded", "carla"), help="simulator (default embedded)")
     p.add_argument("--host", default="localhost", help="--backend carla: server host (default localhost)")
     p.add_argument("--port", type=int, default=2000, help="--backend carla: server port (default 2000)")
@@ -86,7 +96,7 @@ def run(args: argparse.Namespace) -> int:
     if args.backend != "embedded" and args.workers != 1:
         raise SystemExit(f"yawil collect: --backend {args.backend} drives one server: use --workers 1 (got {args.workers})")
     factory = world_factory(args.backend, **({} if args.backend == "embedded" else {"host": args.host, "port": args.port, "timeout": args.timeout}))
-    summary = collect(args.out, town=args.town, weathers=args.weathers, frames=args.frames, episodes=args.episodes,
+    summary = collect(args.out, verify=args.verify, town=args.town, weathers=args.weathers, frames=args.frames, episodes=args.episodes,
                       workers=args.workers, seed=args.seed, config=cfg, progress=not args.quiet,
                       world_factory=factory)  # fmt: skip
     outcomes = ", ".join(f"{k} {v}" for k, v in sorted(summary.outcomes.items())) or "none"

@@ -233,6 +233,7 @@ class EpisodeWriter:
             chunks=(w.image_chunk_frames, *IMAGE_SHAPE),
             compression=w.image_compression,
             compression_opts=w.image_compression_opts,
+            fletcher32=True,  # a checksum per chunk: a flipped byte fails the read (and `data check`), never passes
         )
         for name in LABEL_FIELDS:
             shape = field_shape(name, k)
@@ -245,6 +246,7 @@ class EpisodeWriter:
                 compression="gzip",
                 compression_opts=4,
                 shuffle=True,
+                fletcher32=True,
             )
 
     def _flush(self) -> None:

@@ -4,20 +4,32 @@ from __future__ import annotations
 
 import argparse
 
+# yawil.sim.weather.WEATHERS, named here so that `--help` needs no import of the simulator
+# (tests/test_help.py checks that the two lists agree).
+WEATHER_NAMES: tuple[str, ...] = (
+    "ClearNoon", "WetNoon", "HardRainNoon", "ClearSunset",  # the training weathers
+    "WetCloudyNoon", "SoftRainSunset",  # the test weathers
+)
+
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:  # type: ignore[type-arg]
     p = subparsers.add_parser("sim", help="the embedded simulator: views, routes, turning tasks")
     sub = p.add_subparsers(dest="sim_command", metavar="SUBCOMMAND")
-    v = sub.add_parser("view", help="write camera frames and a bird's-eye map of an episode")
-    v.add_argument("--town", default="town01", help="town01, town02, square or a layout .json path")
-    v.add_argument("--weather", default="ClearNoon")
-    v.add_argument("--seed", type=int, default=0)
-    v.add_argument("--vehicles", type=int, default=30)
-    v.add_argument("--pedestrians", type=int, default=20)
-    v.add_argument("--steps", type=int, default=30, help="steps to drive (a simple route follower) before the views")
-    v.add_argument("--frames", type=int, default=3, help="camera frames to write, spread over the steps")
-    v.add_argument("--render-backend", default="software", choices=("software", "opengl"))
-    v.add_argument("--out", default="view", help="output directory")
+    v = sub.add_parser("view", help="write camera frames and a bird's-eye map of an episode",
+                       description="Drive a simple route follower for --steps steps, writing --frames camera "
+                       "frames and the bird's-eye map of the episode into --out.")
+    v.add_argument("--town", default="town01", help="town01, town02, square or a layout .json path (default town01)")
+    v.add_argument("--weather", default="ClearNoon", metavar="WEATHER",
+                   help=f"one of {', '.join(WEATHER_NAMES)} (default ClearNoon)")
+    v.add_argument("--seed", type=int, default=0, help="episode seed: route, traffic and pedestrians (default 0)")
+    v.add_argument("--vehicles", type=int, default=30, help="vehicles (default 30)")
+    v.add_argument("--pedestrians", type=int, default=20, help="pedestrians (default 20)")
+    v.add_argument("--steps", type=int, default=30,
+                   help="steps to drive (a simple route follower) before the views (default 30)")
+    v.add_argument("--frames", type=int, default=3, help="camera frames to write, spread over the steps (default 3)")
+    v.add_argument("--render-backend", default="software", choices=("software", "opengl"),
+                   help="camera renderer (default software)")
+    v.add_argument("--out", default="view", help="output directory (default view)")
     r = sub.add_parser("routes", help="print random routes of a town (start, goal, length, lights)")
     r.add_argument("--town", default="town01")
     r.add_argument("--seed", type=int, default=0)

@@ -15,6 +15,7 @@ from typing import Any
 
 import numpy as np
 
+from yawil.fileio import default_file_mode
 from yawil.sim.town.geometry import ActorView, Box, TownGeometry
 from yawil.sim.types import Pose
 
@@ -132,6 +133,7 @@ def _save_atomic(fig: Any, path: Path) -> None:
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:
+            os.fchmod(f.fileno(), default_file_mode())  # mkstemp makes 0600
             fig.savefig(f, format=fmt, bbox_inches="tight")
         os.replace(tmp, path)
     except BaseException:

@@ -1,0 +1,56 @@
+"""Writing files whole, with the permissions any other new file would get.
+
+`tempfile.mkstemp` creates its file with mode 0600 whatever the umask, so a file written to a temporary name
+and renamed over its target stayed readable by its owner only (checkpoints, reports, plots). Every such
+writer gives the temporary file `default_file_mode()` before the rename: 0644 under the usual umask 022.
+Only the standard library is imported here: the CLI modules may use it without slowing `yawil --help`.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import os
+import tempfile
+import threading
+from pathlib import Path
+
+_UMASK_LOCK = threading.Lock()
+
+
+def _umask() -> int:
+    """The process umask. Read from /proc where it is listed (Linux), as setting it to read it back changes
+    it for every thread for a moment; elsewhere set and restore it under a lock."""
+    with contextlib.suppress(OSError, ValueError):
+        with open("/proc/self/status", encoding="ascii", errors="replace") as f:
+            for line in f:
+                if line.startswith("Umask:"):
+                    return int(line.split()[1], 8)
+    with _UMASK_LOCK:
+        mask = os.umask(0o022)
+        os.umask(mask)
+    return mask
+
+
+def default_file_mode() -> int:
+    """The mode `open(path, 'w')` gives a new file: 0o666 less the umask (0o644 under umask 022)."""
+    return 0o666 & ~_umask()
+
+
+def write_atomic(path: str | os.PathLike[str], data: str | bytes) -> Path:
+    """Write `data` (str as UTF-8) to a temporary file beside `path`, fsync, then rename it over `path`:
+    readers see the old file or the new one, never half of one; the file gets `default_file_mode()`."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as f:
+            os.fchmod(f.fileno(), default_file_mode())  # mkstemp makes 0600
+            f.write(data.encode("utf-8") if isinstance(data, str) else data)
+            f.flush()
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+    return path

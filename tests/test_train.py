@@ -216,6 +216,25 @@ def test_a_signal_stops_between_steps_and_resume_is_exact(tmp_path: Path, monkey
         assert torch.equal(a[key], b[key]), key
 
 
+def test_an_unreadable_batch_saves_the_run_and_names_the_problem(tmp_path: Path) -> None:
+    """A corrupt episode met mid-epoch: the finished steps are saved and the error is one ValueError."""
+    _, va, gc = splits(64)
+
+    class Corrupt(MemoryDataset):
+        def __getitem__(self, i: int) -> Any:
+            if i == self.bad_index:
+                raise OSError("Can't synchronously read data (data error detected by fletcher32 checksum)")
+            return super().__getitem__(i)
+
+    bad = Corrupt(64, seed=1)
+    bad.bad_index = -1
+    order = epoch_batches(64, 16, 0, 0)  # seed 0, epoch 0: the run's order
+    bad.bad_index = int(order[2][0])  # the first sample of the third batch
+    with pytest.raises(ValueError, match="fletcher32 checksum.*saved at step 2.*--resume"):
+        train(small(tmp_path, "c", epochs=1), splits=(bad, va, gc))
+    assert load_checkpoint(tmp_path / "c" / "last.pt")["position"]["step"] == 2
+
+
 def test_a_second_ctrl_c_stops_at_once_without_saving(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     import yawil.train as train_module
 

@@ -8,6 +8,7 @@ dies, so a `kill -9` never leaves a stale lock behind and the usual resume works
 
 from __future__ import annotations
 
+import os
 from collections.abc import Iterator
 from contextlib import contextmanager
 from pathlib import Path
@@ -18,7 +19,7 @@ LOCK_FILE = ".yawil.lock"
 
 
 @contextmanager
-def folder_lock(folder: str | Path, what: str) -> Iterator[Path]:
+def folder_lock(folder: str | os.PathLike[str], what: str) -> Iterator[Path]:
     """Hold `folder`'s lock for the body (creating the folder); ValueError if another holder has it (another
     process, or a second lock of the same folder in this one)."""
     folder = Path(folder)

@@ -750,6 +750,15 @@ def _train(cfg: TrainConfig, resume: bool, splits: tuple[Any, Any, Mapping[str, 
             plot_losses(out, metrics)
             print(f"interrupted at step {pos.step}; resume with --resume", file=sys.stderr)
             raise KeyboardInterrupt(f"stopped at step {pos.step}") from None
+        except _DataError as err:
+            # the weights are those after pos.step whole steps: save them, then name the data problem
+            bar.close()
+            if pos.batch > 0:
+                end_of_period(partial=True)
+            writer.close()
+            raise ValueError(f"cannot read a training batch ({err}); the run is saved at step {pos.step}: "
+                             "check the data (yawil data check; a resumed collect re-collects damaged episodes), "
+                             "then --resume") from None
         except KeyboardInterrupt:
             # a second Ctrl-C stops mid-step: the weights may be half-updated, so nothing is saved
             bar.close()
@@ -850,8 +859,20 @@ def _train_epoch(
     return None
 
 
+class _DataError(Exception):
+    """A batch could not be read (a corrupt or vanished episode file); raised before its step began."""
+
+
 def _iterate(loader: Any) -> Iterator[Any]:
-    yield from loader
+    it = iter(loader)
+    while True:
+        try:
+            raw = next(it)
+        except StopIteration:
+            return
+        except (OSError, ValueError) as err:  # h5py's checksum or decode errors, a file gone
+            raise _DataError(str(err).strip().splitlines()[-1]) from err
+        yield raw
 
 
 def link_or_copy(src: Path, dst: Path) -> None:

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 from dataclasses import replace
@@ -189,3 +190,38 @@ def test_privileged_fields_are_validated(tmp_path: Path) -> None:
         with pytest.raises(ValueError, match=field):
             replace(rec, **{field: bad}).validate()
     replace(rec, target_speed=float("nan"), driver=2, round=3).validate()
+
+
+def test_a_full_disk_stops_collection_in_one_clear_error(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Checked before each write: the episode's temporary file is removed and nothing half-written stays."""
+    import shutil
+
+    import yawil.data.writer as writer_module
+    from yawil.data.writer import MIN_FREE_BYTES
+
+    real = shutil.disk_usage
+    free = {"bytes": 10 * MIN_FREE_BYTES}
+    monkeypatch.setattr(writer_module.shutil, "disk_usage",
+                        lambda p: real(p)._replace(free=free["bytes"]))  # type: ignore[attr-defined]
+    m = write_synthetic_dataset(tmp_path / "d", episodes=1, frames=5, k=3)
+    free["bytes"] = MIN_FREE_BYTES - 1
+    with pytest.raises(OSError, match="the disk is \\(nearly\\) full") as err:
+        write_synthetic_dataset(tmp_path / "d", episodes=1, frames=5, k=3, first_episode=1)
+    assert err.value.errno == errno.ENOSPC
+    assert sorted(p.name for p in (tmp_path / "d" / "episodes").iterdir()) == [m.episodes[0].file.split("/")[-1]]
+
+
+def test_a_failed_checkpoint_write_names_the_full_disk(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import shutil
+
+    import yawil.checkpoint as ck
+
+    def fail(*a: object, **k: object) -> None:
+        raise RuntimeError("[enforce fail at inline_container.cc:664] . unexpected pos 4416 vs 4310")
+
+    monkeypatch.setattr(ck.torch, "save", fail)
+    monkeypatch.setattr(ck.shutil, "disk_usage", lambda p: shutil._ntuple_diskusage(100, 100, 0))  # type: ignore[attr-defined]
+    ckpt = {k: None for k in ck.REQUIRED_KEYS}
+    with pytest.raises(OSError, match="the disk is full") as err:
+        ck.save_checkpoint(ckpt, tmp_path / "last.pt")
+    assert err.value.errno == errno.ENOSPC and list(tmp_path.iterdir()) == []

@@ -8,7 +8,9 @@ exact training preprocessing without the dataset.
 
 from __future__ import annotations
 
+import errno
 import os
+import shutil
 import tempfile
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -153,7 +155,14 @@ def save_checkpoint(ckpt: dict[str, Any], path: str | os.PathLike[str]) -> Path:
     try:
         with os.fdopen(fd, "wb") as f:
             os.fchmod(f.fileno(), default_file_mode())  # mkstemp makes 0600
-            torch.save(ckpt, f)
+            try:
+                torch.save(ckpt, f)
+            except RuntimeError as err:  # torch reports a failed write as "enforce fail at inline_container.cc"
+                free = shutil.disk_usage(path.parent).free
+                raise OSError(errno.ENOSPC if free < (64 << 20) else errno.EIO,
+                              f"{path}: writing the checkpoint failed ({free / 2**20:.0f} MiB free on its disk"
+                              f"{': the disk is full' if free < (64 << 20) else ''}); torch said: "
+                              f"{str(err).strip().splitlines()[0]}") from None
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)

@@ -9,10 +9,12 @@ atomically). A crash therefore loses at most the episode in progress, and a resu
 from __future__ import annotations
 
 import contextlib
+import errno
 import json
 import math
 import os
 import re
+import shutil
 from pathlib import Path
 from types import TracebackType
 from typing import Any
@@ -51,6 +53,21 @@ IMAGE_COMPRESSION_OPTS: int | None = None
 IMAGE_CHUNK_FRAMES = 1
 LABEL_CHUNK_ROWS = 1024
 FLUSH_EVERY = 64  # frames buffered in memory between writes (~3.4 MB of images)
+
+MIN_FREE_BYTES = 32 << 20  # stop before a write can fail: ~10 flushes of images, and the file's metadata
+
+
+def check_free_space(path: Path) -> None:
+    """OSError(ENOSPC) naming the folder when its disk has less than MIN_FREE_BYTES free.
+
+    Why before writing: once HDF5 has failed a write, closing the file fails again at every object h5py
+    frees (a hundred 'Exception ignored' tracebacks) and the process segfaulted. Checked before each flush,
+    the episode is discarded cleanly and a rerun resumes."""
+    free = shutil.disk_usage(path.parent).free
+    if free < MIN_FREE_BYTES:
+        raise OSError(errno.ENOSPC, f"{path.parent}: the disk is (nearly) full, {free / 2**20:.1f} MiB free; "
+                      f"free some space and run the same command again (it resumes)")
+
 
 _TMP_RE = re.compile(r"^\.ep_\d+\.h5\.(\d+)\.tmp$")
 
@@ -185,6 +202,7 @@ class EpisodeWriter:
         self.route_length: float | None = None if rl is None else float(rl)
         self.final_path = writer.root / episode_filename(episode_id)
         self.tmp_path = self.final_path.with_name(f".{self.final_path.name}.{os.getpid()}.tmp")
+        check_free_space(self.tmp_path)
         self._h5: h5py.File | None = h5py.File(self.tmp_path, "w", libver="latest")
         self._k: int | None = None
         self._n = 0
@@ -254,6 +272,7 @@ class EpisodeWriter:
         if m == 0:
             return
         assert self._h5 is not None
+        check_free_space(self.tmp_path)
         n0, n1 = self._n, self._n + m
         for name, values in self._buf.items():
             ds = self._h5[name]

@@ -127,6 +127,11 @@ def test_noise_options_are_seeded(tmp_path: Path) -> None:
     always = Agent.from_checkpoint(cpath, precision="fp32", command_noise_p=1.0, seed=1)
     given = [always.inputs(observation(RoadOption.LEFT))[2] for _ in range(5)]
     assert all(c is not None and c != 1 for c in given)
+    # a noise the model cannot receive is refused, not silently ignored
+    with pytest.raises(ValueError, match="takes no guidance"):
+        Agent.from_checkpoint(cpath, yaw_noise_deg=10.0)
+    with pytest.raises(ValueError, match="takes no command"):
+        Agent.from_checkpoint(path, command_noise_p=0.1)
 
 
 def test_bad_observation_and_checkpoint(tmp_path: Path) -> None:

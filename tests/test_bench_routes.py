@@ -115,3 +115,5 @@ def test_parse_range() -> None:
         parse_range("30", 25)
     with pytest.raises(ValueError, match="slice"):
         parse_range("a:b", 25)
+    with pytest.raises(ValueError, match="selects no route"):
+        parse_range("5:2", 25)

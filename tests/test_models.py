@@ -320,3 +320,11 @@ def test_models_command_lists_every_model(capsys: pytest.CaptureFixture[str]) ->
     for name in NAMES:
         assert name in out
     assert "23,044,164" in out  # YILRatt: ResNet34 without fc + attention + heads
+
+
+def test_a_model_option_of_the_wrong_kind_is_named() -> None:
+    """`--model-arg dropout=abc` used to end in a TypeError inside torch."""
+    for name, key, value, want in (("yilratt", "dropout", "abc", "a number"), ("yilratt", "aux", 1, "true or false"),
+                                   ("cil", "image_size", 88, "a list")):
+        with pytest.raises(ValueError, match=f"option {key}=.* must be {want}"):
+            create(name, **{key: value})

@@ -147,6 +147,11 @@ class Agent:
                 f"the normalisation has {len(norm.guidance_mean)} guidance values, "
                 f"the model expects {getattr(model, 'guidance_dim', '?')}"
             )
+        name = getattr(model, "name", type(model).__name__)
+        if yaw_noise_deg > 0 and self.kind not in ("yaw", "sim_yaw"):
+            raise ValueError(f"yaw noise perturbs yaw guidance; {name} takes {self.kind or 'no'} guidance")
+        if command_noise_p > 0 and not self.uses_command:
+            raise ValueError(f"command noise perturbs the high-level command; {name} takes no command")
         self.post = post or PostProcess()
         if speed_control and getattr(model, "aux_head", None) is None:
             raise ValueError(f"speed_control needs a model with an aux head (trained with --model-arg aux=true); "

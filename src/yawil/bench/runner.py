@@ -64,6 +64,8 @@ class AgentSpec:
             raise ValueError(
                 f"yaw_noise_deg must be >= 0 and command_noise_p in [0, 1], got {self.yaw_noise_deg}, {self.command_noise_p}"
             )
+        if not self.is_expert and (self.yaw_noise_deg or self.command_noise_p or self.speed_control):
+            self.build(0)  # the agent refuses options its model cannot take: before any episode, not in a worker
         return self
 
     def identity(self) -> str:
@@ -72,7 +74,7 @@ class AgentSpec:
     def content_hash(self) -> str | None:
         """SHA-256 of the checkpoint file (None for the expert): a resume must drive the same weights, even
         when another checkpoint was written to the same path in between."""
-        if self.is_expert:
+        if self.is_expert or not Path(self.agent).is_file():  # the expert, or a custom agent_factory's name
             return None
         import hashlib
 

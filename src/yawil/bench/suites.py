@@ -291,9 +291,14 @@ def parse_range(spec: str | None, n: int) -> list[int]:
             parts = [int(p) if p.strip() else None for p in spec.split(":")]
             if len(parts) > 3:
                 raise ValueError
-            return list(range(n))[slice(*parts)]
+            chosen = list(range(n))[slice(*parts)]
+            if not chosen:  # '5:2' or '30:' selected nothing: a benchmark of 0 episodes is a typo, not a result
+                raise ValueError(f"--routes {spec!r} selects no route of 0..{n - 1}")
+            return chosen
         ids = [int(p) for p in spec.split(",")]
-    except ValueError:
+    except ValueError as err:
+        if "selects no route" in str(err):
+            raise
         raise ValueError(f"--routes {spec!r}: expected a slice like 0:5 or a list like 1,4,7") from None
     bad = [i for i in ids if not 0 <= i < n]
     if bad:

@@ -37,6 +37,25 @@ def list_models() -> list[str]:
     return list(_REGISTRY)
 
 
+def _check_option(model: str, key: str, value: Any, default: Any) -> None:
+    """A value of the default's kind, or ValueError naming it (a string where a number belongs used to reach
+    the constructor and end in a TypeError deep in torch)."""
+    if default is inspect.Parameter.empty or default is None or value is None:
+        return
+    if isinstance(default, bool):
+        ok, want = isinstance(value, bool), "true or false"
+    elif isinstance(default, int | float):
+        ok, want = isinstance(value, int | float) and not isinstance(value, bool), "a number"
+    elif isinstance(default, str):
+        ok, want = isinstance(value, str), "a string"
+    elif isinstance(default, tuple | list):
+        ok, want = isinstance(value, tuple | list), f"a list like {list(default)}"
+    else:
+        return
+    if not ok:
+        raise ValueError(f"model {model!r}: option {key}={value!r} must be {want} (default {default!r})")
+
+
 def create(name: str, *, pretrained: str | Path | None = None, seed: int | None = None, **cfg: Any) -> DrivingModel:
     """Build a model by name.
 
@@ -50,6 +69,8 @@ def create(name: str, *, pretrained: str | Path | None = None, seed: int | None 
     unknown = sorted(set(cfg) - set(params))
     if unknown:
         raise ValueError(f"model {name!r}: unknown option(s) {unknown}; accepted: {sorted(params)}")
+    for key, value in cfg.items():
+        _check_option(name, key, value, params[key].default)
     bound = inspect.signature(builder).bind(**cfg)
     bound.apply_defaults()
     if seed is None:

@@ -439,6 +439,25 @@ def test_yawil_train_command_and_resume(tmp_path: Path, real_data: Path) -> None
     assert main(["train", "--data", str(tmp_path / "no-data"), "--out", str(tmp_path / "x")]) == 2
 
 
+def test_a_one_episode_dataset_trains_without_validation(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """`collect --frames 400` gives one episode: the smallest natural first run trains, with a warning."""
+    from yawil.cli import main
+    from yawil.data import write_synthetic_dataset
+
+    write_synthetic_dataset(tmp_path / "one", episodes=1, frames=12, k=K, seed=0)
+    out = tmp_path / "run"
+    argv = ["train", "--model", "cil", "--data", str(tmp_path / "one"), "--out", str(out), "--epochs", "2",
+            "--batch-size", "8", "--no-progress", "--precision", "fp32"]
+    assert main(argv) == 0
+    assert "training without validation" in capsys.readouterr().err
+    rows = list(csv.DictReader((out / "metrics.csv").open()))
+    assert len(rows) == 2 and all(math.isnan(float(r["val_loss"])) for r in rows)
+    best, last = _weights(out / "best.pt"), _weights(out / "last.pt")
+    assert all(torch.equal(best[k], last[k]) for k in last)  # best follows last when nothing is validated
+    with pytest.raises(ValueError, match="val_fraction"):
+        TrainConfig(val_fraction=1.0)
+
+
 def test_pretrained_backbone_is_loaded(tmp_path: Path) -> None:
     import torchvision
 

@@ -120,7 +120,8 @@ class TrainConfig:
             need(_is_num(getattr(self, name)) and getattr(self, name) > 0, name, "a number > 0")
         for name in ("weight_decay", "alpha", "beta"):
             need(_is_num(getattr(self, name)) and getattr(self, name) >= 0, name, "a number >= 0")
-        need(_is_num(self.val_fraction) and 0.0 < self.val_fraction < 1.0, "val_fraction", "a number in (0, 1)")
+        need(_is_num(self.val_fraction) and 0.0 <= self.val_fraction < 1.0, "val_fraction",
+             "a number in [0, 1) (0: no validation, best.pt is the last checkpoint)")
         need(self.loss in LOSSES, "loss", f"one of {LOSSES}")
         need(self.brake_loss in BRAKE_LOSSES, "brake_loss", f"one of {BRAKE_LOSSES}")
         need(self.device in DEVICES, "device", f"one of {DEVICES}")
@@ -522,6 +523,9 @@ def validate(
             "val_l1_speed": l1[3], "val_brake_recall": recall}
 
 
+VAL_KEYS = ("val_loss", "val_l1_steer", "val_l1_throttle", "val_l1_brake", "val_l1_speed", "val_brake_recall")
+
+
 def _loader(dataset: Any, batches: list[list[int]], cfg: TrainConfig, runtime: Runtime) -> Any:
     from torch.utils.data import DataLoader
 
@@ -544,7 +548,14 @@ def open_splits(cfg: TrainConfig) -> tuple[Any, Any, dict[str, Any]]:
     for root in cfg.data:
         if not Path(root).exists():
             raise FileNotFoundError(f"dataset root {root} does not exist")
-    train_eps, val_eps = data.split_episodes(cfg.data, cfg.val_fraction, cfg.seed)
+    fraction = cfg.val_fraction
+    n = len(data.split_episodes(cfg.data, 0.0, cfg.seed)[0])
+    if fraction > 0 and n < 2:  # the smallest natural first run (`collect --frames 400`) must train
+        print(f"warning: {n} episode in {', '.join(map(str, cfg.data))}: too few to hold one out, training without "
+              "validation (best.pt is the last checkpoint); collect more episodes for a validation loss",
+              file=sys.stderr)
+        fraction = 0.0
+    train_eps, val_eps = data.split_episodes(cfg.data, fraction, cfg.seed)
     train_ds = data.DrivingDataset(cfg.data, episodes=train_eps)
     val_ds = data.DrivingDataset(cfg.data, episodes=val_eps)
     return train_ds, val_ds, dataset_guidance_config(train_ds)
@@ -683,8 +694,9 @@ def _train(cfg: TrainConfig, resume: bool, splits: tuple[Any, Any, Mapping[str, 
         )  # fmt: skip
 
     def end_of_period(partial: bool) -> None:
-        """Validate, log, keep best and last. `partial`: a budget stopped the epoch midway."""
-        val = validate(model, val_loader, norm, kind, cfg, runtime)
+        """Validate, log, keep best and last. `partial`: a budget stopped the epoch midway. Without a validation
+        split the metrics' validation columns are NaN and best.pt follows last.pt."""
+        val = validate(model, val_loader, norm, kind, cfg, runtime) if len(val_ds) else dict.fromkeys(VAL_KEYS, math.nan)
         row: dict[str, float] = {
             "epoch": pos.epoch + (pos.batch / max(1, n_batches) if partial else 1),
             "step": pos.step,
@@ -697,8 +709,8 @@ def _train(cfg: TrainConfig, resume: bool, splits: tuple[Any, Any, Mapping[str, 
         metrics.append(row)
         for key in ("train_loss", *val):
             writer.add_scalar(f"epoch/{key}", row[key], pos.step)
-        improved = row["val_loss"] < pos.best_val
-        if improved:
+        improved = row["val_loss"] < pos.best_val or not len(val_ds)
+        if improved and len(val_ds):
             pos.best_val = row["val_loss"]
         if not partial:
             scheduler.step()

@@ -23,7 +23,7 @@ _OPTIONS: tuple[tuple[str, str, Any, str], ...] = (
     ("--alpha", "alpha", float, "weight of the action loss (paper: 1.0)"),
     ("--beta", "beta", float, "weight of the speed loss (paper: 0.1)"),
     ("--loss", "loss", str, "l1 (default) | mse | smooth_l1"),
-    ("--val-fraction", "val_fraction", float, "share of episodes held out for validation (default 0.1)"),
+    ("--val-fraction", "val_fraction", float, "share of episodes held out for validation (default 0.1; 0: none, best.pt = last.pt; a one-episode dataset trains without)"),
     ("--seed", "seed", int, "seed of the split, data order, augmentation and initial weights (default 0)"),
     ("--workers", "workers", int, "DataLoader worker processes (default 0: load in the main process)"),
     ("--threads", "threads", int, "torch CPU threads (default 0: the cores left after --workers)"),

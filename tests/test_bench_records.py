@@ -104,6 +104,23 @@ def test_iter_results_refuses_a_repeated_episode(tmp_path: Path) -> None:
         list(iter_results(tmp_path))
 
 
+@pytest.mark.parametrize("change, message", [
+    ({"success": "yes"}, "success='yes', expected true or false"),
+    ({"route_id": -3}, "route_id=-3, expected an integer >= 0"),
+    ({"km_driven": None}, "km_driven=None"),
+    ({"red_lights": -1}, "red_lights=-1"),
+])
+def test_iter_results_refuses_a_record_it_cannot_count(tmp_path: Path, change: dict, message: str) -> None:
+    (tmp_path / EPISODES_FILE).write_text(json.dumps(_rec(0)) + "\n" + json.dumps({**_rec(1), **change}) + "\n")
+    with pytest.raises(ValueError, match=f"record 2: {message}"):
+        list(iter_results(tmp_path))
+    rec = _rec(2)
+    del rec["success"]
+    (tmp_path / EPISODES_FILE).write_text(json.dumps(rec) + "\n")
+    with pytest.raises(ValueError, match="field 'success' is missing"):
+        list(iter_results(tmp_path))
+
+
 def test_iter_results_needs_a_results_folder(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="episodes.jsonl"):
         list(iter_results(tmp_path))

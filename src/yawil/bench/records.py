@@ -158,6 +158,39 @@ def check_run_info(folder: str | Path, info: Mapping[str, Any], label_given: boo
     write_json_atomic(path, dict(info))
 
 
+# Fields the report computes with, and what each must hold: a hand-edited "success": "yes" or a negative
+# route id would otherwise become a figure.
+_REPORT_FIELDS: dict[str, tuple[str, Any]] = {
+    "task": ("a task name", lambda v: isinstance(v, str) and bool(v)),
+    "condition": ("a condition name", lambda v: isinstance(v, str) and bool(v)),
+    "route_id": ("an integer >= 0", lambda v: _is_int(v) and v >= 0),
+    "seed": ("an integer >= 0", lambda v: _is_int(v) and v >= 0),
+    "success": ("true or false", lambda v: isinstance(v, bool)),
+    "km_driven": ("a number >= 0", lambda v: _is_num(v) and v >= 0),
+}
+_COUNT_FIELDS = ("lane_offroad", "lane_opposite", "lights_passed", "red_lights")
+
+
+def _is_int(v: Any) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _is_num(v: Any) -> bool:
+    return isinstance(v, int | float) and not isinstance(v, bool) and v == v
+
+
+def check_record(rec: Mapping[str, Any], where: str) -> None:
+    """ValueError naming the record and field when a record cannot be counted as written."""
+    for name, (want, ok) in _REPORT_FIELDS.items():
+        if name not in rec:
+            raise ValueError(f"{where}: field {name!r} is missing (expected {want})")
+        if not ok(rec[name]):
+            raise ValueError(f"{where}: {name}={rec[name]!r}, expected {want}")
+    for name in _COUNT_FIELDS:
+        if name in rec and not (_is_num(rec[name]) and rec[name] >= 0):
+            raise ValueError(f"{where}: {name}={rec[name]!r}, expected a count >= 0")
+
+
 def iter_results(folder: str | Path) -> Iterator[dict[str, Any]]:
     """Records of a results folder (or of a JSON-lines file given directly)."""
     p = Path(folder)
@@ -166,6 +199,7 @@ def iter_results(folder: str | Path) -> Iterator[dict[str, Any]]:
         raise ValueError(f"{folder}: no {EPISODES_FILE} found (expected a folder written by `yawil bench`)")
     seen: dict[str, int] = {}
     for i, rec in enumerate(read_records(path)):
+        check_record(rec, f"{path}: record {i + 1}")
         key = episode_key(rec)
         if key in seen:  # counted twice, a figure would be wrong without a word
             raise ValueError(f"{path}: record {i + 1} repeats episode {key} (record {seen[key] + 1})")

@@ -50,6 +50,20 @@ class DemoBudget:
     explain_frames: int = 6
     video_steps: int = 200
 
+    def __post_init__(self) -> None:
+        """Every option checked before the first stage: a typo used to surface at stage 4, after the
+        collection and two trainings."""
+        from yawil.bench.suites import parse_range
+
+        for name in ("frames", "max_steps", "baseline_steps", "video_steps", "batch_size", "epochs", "seeds"):
+            value = getattr(self, name)
+            if not isinstance(value, int) or isinstance(value, bool) or value < 1:
+                raise ValueError(f"demo: {name}={value!r}, expected an integer >= 1")
+        for name in ("max_minutes", "baseline_minutes"):
+            if not getattr(self, name) > 0:
+                raise ValueError(f"demo: {name}={getattr(self, name)!r}, expected minutes > 0")
+        parse_range(self.routes, 25)  # the suites' 25 routes per task; names the bad --routes
+
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:  # type: ignore[type-arg]
     p = subparsers.add_parser(

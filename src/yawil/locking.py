@@ -23,6 +23,8 @@ def folder_lock(folder: str | os.PathLike[str], what: str) -> Iterator[Path]:
     """Hold `folder`'s lock for the body (creating the folder); ValueError if another holder has it (another
     process, or a second lock of the same folder in this one)."""
     folder = Path(folder)
+    if folder.exists() and not folder.is_dir():
+        raise ValueError(f"{folder}: is a file; expected the {what}'s folder")
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / LOCK_FILE
     lock = FileLock(str(path), timeout=0, mode=0o644)

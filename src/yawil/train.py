@@ -112,6 +112,9 @@ class TrainConfig:
 
         need(isinstance(self.model, str) and bool(self.model), "model", "a model name")
         need(isinstance(self.model_args, dict), "model_args", "a mapping of model options")
+        from yawil import models
+
+        models.registry.check_options(self.model, **self.model_args)  # before any data is read
         for name in ("epochs", "batch_size", "lr_step_epochs", "log_every"):
             need(_is_int(getattr(self, name)) and getattr(self, name) >= 1, name, "an integer >= 1")
         for name in ("workers", "threads", "seed"):

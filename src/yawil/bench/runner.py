@@ -64,8 +64,8 @@ class AgentSpec:
             raise ValueError(
                 f"yaw_noise_deg must be >= 0 and command_noise_p in [0, 1], got {self.yaw_noise_deg}, {self.command_noise_p}"
             )
-        if not self.is_expert and (self.yaw_noise_deg or self.command_noise_p or self.speed_control):
-            self.build(0)  # the agent refuses options its model cannot take: before any episode, not in a worker
+        if not self.is_expert:
+            self.build(0)  # an unreadable checkpoint, or an option its model cannot take, fails before any episode
         return self
 
     def identity(self) -> str:

@@ -56,12 +56,9 @@ def _check_option(model: str, key: str, value: Any, default: Any) -> None:
         raise ValueError(f"model {model!r}: option {key}={value!r} must be {want} (default {default!r})")
 
 
-def create(name: str, *, pretrained: str | Path | None = None, seed: int | None = None, **cfg: Any) -> DrivingModel:
-    """Build a model by name.
-
-    pretrained: a local torchvision ResNet34 state dict loaded into the backbone (never downloaded).
-    seed: makes the initial weights reproducible bit for bit without touching the global RNG.
-    """
+def check_options(name: str, **cfg: Any) -> Any:
+    """The builder of `name` once its name and options are known good (ValueError naming them): lets a
+    config be checked before any data is read or weights are built."""
     if name not in _REGISTRY:
         raise ValueError(f"model: unknown name {name!r}; known: {', '.join(_REGISTRY)}")
     builder = _REGISTRY[name]
@@ -71,6 +68,16 @@ def create(name: str, *, pretrained: str | Path | None = None, seed: int | None 
         raise ValueError(f"model {name!r}: unknown option(s) {unknown}; accepted: {sorted(params)}")
     for key, value in cfg.items():
         _check_option(name, key, value, params[key].default)
+    return builder
+
+
+def create(name: str, *, pretrained: str | Path | None = None, seed: int | None = None, **cfg: Any) -> DrivingModel:
+    """Build a model by name.
+
+    pretrained: a local torchvision ResNet34 state dict loaded into the backbone (never downloaded).
+    seed: makes the initial weights reproducible bit for bit without touching the global RNG.
+    """
+    builder = check_options(name, **cfg)
     bound = inspect.signature(builder).bind(**cfg)
     bound.apply_defaults()
     if seed is None:

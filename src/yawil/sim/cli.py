@@ -82,6 +82,11 @@ def _view(args: argparse.Namespace) -> int:
 
     if args.steps < 0 or args.frames < 1:
         raise ValueError(f"--steps must be >= 0 and --frames >= 1, got {args.steps} and {args.frames}")
+    from yawil.sim.town.layout import resolve_town
+    from yawil.sim.weather import get_weather
+
+    resolve_town(args.town)  # both named before a folder is made
+    get_weather(args.weather)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     world = EmbeddedWorld(render_backend=args.render_backend)
@@ -121,6 +126,8 @@ def _routes(args: argparse.Namespace) -> int:
     from yawil.sim.town.planner import random_route, route_endpoints
     from yawil.sim.town.town import get_town
 
+    if args.count < 1:
+        raise ValueError(f"--count {args.count}: expected an integer >= 1")
     lanes = get_town(args.town).lanes
     rng = np.random.default_rng(args.seed)
     for k in range(args.count):

@@ -1,0 +1,50 @@
+"""Every door a clear error: each sub-command given bad input answers in one line naming the value, exits
+non-zero, prints no traceback and leaves nothing behind where it refused before any work."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+from pathlib import Path
+
+import pytest
+
+from yawil.cli import main
+
+# (argv with {t} for the temporary folder, text the one line must contain, a path that must not exist after)
+CASES = [
+    (["sim", "view", "--town", "town02", "--weather", "Rainy", "--out", "{t}/v"], "unknown weather 'Rainy'", "{t}/v"),
+    (["sim", "routes", "--count", "-2"], "--count -2", None),
+    (["collect", "--town", "nowhere", "--frames", "10", "--out", "{t}/c"], "unknown town 'nowhere'", "{t}/c"),
+    (["collect", "--frames", "10", "--workers", "0", "--out", "{t}/c"], "workers must be >= 1", None),
+    (["collect", "--frames", "-5", "--out", "{t}/c"], "frames must be >= 1", None),
+    (["bench", "--suite", "corl2017", "--tasks", "straight", "--routes", "5:2", "--out", "{t}/b"], "selects no route", "{t}/b"),
+    (["bench", "--suite", "corl2017", "--tasks", "straight", "--routes", "0:1", "--out", "{t}/afile"], "is a file", None),
+    (["bench", "--agent", "{t}/afile", "--out", "{t}/b"], "not a readable torch checkpoint", "{t}/b"),
+    (["train", "--data", "{t}/none", "--out", "{t}/r"], "does not exist", None),
+    (["train", "--data", "{t}", "--out", "{t}/r", "--model-arg", "dropout=abc"], "dropout='abc' must be a number", None),
+    (["demo", "--routes", "abc", "--out", "{t}/d"], "--routes 'abc'", "{t}/d"),
+    (["report", "{t}", "--out", "{t}/rep"], "no episodes.jsonl", None),
+    (["export", "{t}/missing.pt", "--onnx", "{t}/m.onnx"], "missing.pt does not exist", "{t}/m.onnx"),
+    (["dagger", "--out", "{t}/dg", "--beta", "x"], "--beta", "{t}/dg"),
+    (["explain", "--checkpoint", "{t}/missing.pt", "--frames", "{t}", "--out", "{t}/e"], "does not exist", None),
+]
+
+
+@pytest.mark.parametrize("argv, text, absent", CASES, ids=[" ".join(c[0][:2]) + f" {i}" for i, c in enumerate(CASES)])
+def test_bad_input_is_one_line(tmp_path: Path, argv: list[str], text: str, absent: str | None) -> None:
+    (tmp_path / "afile").write_text("not a checkpoint")
+    argv = [a.replace("{t}", str(tmp_path)) for a in argv]
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+        try:
+            rc = main(argv)
+        except SystemExit as exit_:  # the commands that end with their own one-line message
+            rc = exit_.code if isinstance(exit_.code, int) else 1
+            if not isinstance(exit_.code, int):
+                err.write(str(exit_.code))
+    lines = [line for line in err.getvalue().splitlines() if line.strip()]
+    assert rc in (1, 2) and len(lines) == 1, lines
+    assert text in lines[0] and "Traceback" not in lines[0], lines[0]
+    if absent is not None:
+        assert not Path(absent.replace("{t}", str(tmp_path))).exists()

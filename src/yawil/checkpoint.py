@@ -11,7 +11,6 @@ from __future__ import annotations
 import errno
 import os
 import shutil
-import tempfile
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -19,7 +18,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from yawil.fileio import default_file_mode
+from yawil.fileio import atomic_file
 
 FORMAT = "yawil-checkpoint"
 FORMAT_VERSION = 1
@@ -150,25 +149,15 @@ def save_checkpoint(ckpt: dict[str, Any], path: str | os.PathLike[str]) -> Path:
     if missing:
         raise ValueError(f"refusing to save a checkpoint without {missing}")
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            os.fchmod(f.fileno(), default_file_mode())  # mkstemp makes 0600
-            try:
-                torch.save(ckpt, f)
-            except RuntimeError as err:  # torch reports a failed write as "enforce fail at inline_container.cc"
-                free = shutil.disk_usage(path.parent).free
-                raise OSError(errno.ENOSPC if free < (64 << 20) else errno.EIO,
-                              f"{path}: writing the checkpoint failed ({free / 2**20:.0f} MiB free on its disk"
-                              f"{': the disk is full' if free < (64 << 20) else ''}); torch said: "
-                              f"{str(err).strip().splitlines()[0]}") from None
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    with atomic_file(path) as f:
+        try:
+            torch.save(ckpt, f)
+        except RuntimeError as err:  # torch reports a failed write as "enforce fail at inline_container.cc"
+            free = shutil.disk_usage(path.parent).free
+            raise OSError(errno.ENOSPC if free < (64 << 20) else errno.EIO,
+                          f"{path}: writing the checkpoint failed ({free / 2**20:.0f} MiB free on its disk"
+                          f"{': the disk is full' if free < (64 << 20) else ''}); torch said: "
+                          f"{str(err).strip().splitlines()[0]}") from None
     return path
 
 

@@ -12,7 +12,9 @@ import contextlib
 import os
 import tempfile
 import threading
+from collections.abc import Iterator
 from pathlib import Path
+from typing import BinaryIO
 
 _UMASK_LOCK = threading.Lock()
 
@@ -36,16 +38,19 @@ def default_file_mode() -> int:
     return 0o666 & ~_umask()
 
 
-def write_atomic(path: str | os.PathLike[str], data: str | bytes) -> Path:
-    """Write `data` (str as UTF-8) to a temporary file beside `path`, fsync, then rename it over `path`:
-    readers see the old file or the new one, never half of one; the file gets `default_file_mode()`."""
+@contextlib.contextmanager
+def atomic_file(path: str | os.PathLike[str]) -> Iterator[BinaryIO]:
+    """A binary file handle whose content replaces `path` when the block ends without an error: written to a
+    temporary file beside it, fsynced, renamed over it. Readers see the old file or the new one, never half
+    of one; on an error the temporary file is removed and `path` is untouched. The one implementation of
+    atomic writes in yawil (checkpoints, manifests, records, reports, plots)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
         with os.fdopen(fd, "wb") as f:
             os.fchmod(f.fileno(), default_file_mode())  # mkstemp makes 0600
-            f.write(data.encode("utf-8") if isinstance(data, str) else data)
+            yield f
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
@@ -53,4 +58,10 @@ def write_atomic(path: str | os.PathLike[str], data: str | bytes) -> Path:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
         raise
-    return path
+
+
+def write_atomic(path: str | os.PathLike[str], data: str | bytes) -> Path:
+    """Write `data` (str as UTF-8) to `path` atomically (`atomic_file`) with `default_file_mode()`."""
+    with atomic_file(path) as f:
+        f.write(data.encode("utf-8") if isinstance(data, str) else data)
+    return Path(path)

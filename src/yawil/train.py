@@ -19,7 +19,6 @@ import os
 import random
 import signal
 import sys
-import tempfile
 import threading
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
@@ -35,6 +34,7 @@ from torch import Tensor
 
 from yawil.augment import AugmentConfig, augment_batch
 from yawil.checkpoint import Norm, load_checkpoint, make_checkpoint, save_checkpoint
+from yawil.fileio import write_atomic
 
 LOSSES = ("l1", "mse", "smooth_l1")
 BRAKE_LOSSES = ("same", "bce")
@@ -208,22 +208,6 @@ def _is_int(v: Any) -> bool:
 
 def _is_num(v: Any) -> bool:
     return isinstance(v, int | float | np.integer | np.floating) and not isinstance(v, bool) and math.isfinite(float(v))
-
-
-def write_text_atomic(path: Path, text: str | bytes) -> None:
-    """Write to a temporary file in the same folder and rename: the old file survives a crash."""
-    from yawil.fileio import default_file_mode
-
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            os.fchmod(f.fileno(), default_file_mode())  # mkstemp makes 0600
-            f.write(text.encode() if isinstance(text, str) else text)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
 
 
 # ------------------------------------------------------------------------------------------ device, AMP
@@ -675,7 +659,7 @@ def _train(cfg: TrainConfig, resume: bool, splits: tuple[Any, Any, Mapping[str, 
         torch.manual_seed(cfg.seed)
         np.random.seed(cfg.seed)  # noqa: NPY002 (the legacy global state, for third-party code)
         random.seed(cfg.seed)
-    write_text_atomic(out / "config.yaml", yaml.safe_dump(cfg.to_dict(), sort_keys=False))
+    write_atomic(out / "config.yaml", yaml.safe_dump(cfg.to_dict(), sort_keys=False))
 
     from torch.utils.tensorboard import SummaryWriter
     from tqdm import tqdm
@@ -910,7 +894,7 @@ def write_metrics(out: Path, metrics: Sequence[Mapping[str, float]]) -> None:
     w.writeheader()
     for row in metrics:
         w.writerow({k: f"{row.get(k, math.nan):.6g}" for k in METRIC_FIELDS})  # older rows lack newer columns
-    write_text_atomic(out / "metrics.csv", buf.getvalue())
+    write_atomic(out / "metrics.csv", buf.getvalue())
 
 
 def plot_losses(out: Path, metrics: Sequence[Mapping[str, float]]) -> None:
@@ -934,4 +918,4 @@ def plot_losses(out: Path, metrics: Sequence[Mapping[str, float]]) -> None:
     buf = io.BytesIO()
     fig.savefig(buf, format="png")
     plt.close(fig)
-    write_text_atomic(out / "loss.png", buf.getvalue())
+    write_atomic(out / "loss.png", buf.getvalue())

@@ -7,9 +7,7 @@ a warning, as `DrivingDataset` skips them.
 
 from __future__ import annotations
 
-import contextlib
 import os
-import tempfile
 import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -18,8 +16,8 @@ from pathlib import Path
 import numpy as np
 
 from yawil.data.dataset import as_roots, load_episode_labels, manifest_episodes
-from yawil.data.manifest import _umask
 from yawil.data.schema import COMMAND_NAMES, DRIVERS, SPEED_REASONS
+from yawil.fileio import atomic_file
 
 PathLike = str | os.PathLike[str]
 BINS = {"steer": np.linspace(-1.0, 1.0, 41), "throttle": np.linspace(0.0, 1.0, 21), "brake": np.linspace(0.0, 1.0, 21)}
@@ -125,17 +123,9 @@ def plot_stats(st: DatasetStats, png_path: PathLike, title: str = "") -> Path:
     fig.suptitle(title or f"{st.episodes} episodes, {st.frames} frames")
     fig.tight_layout()
     out = Path(png_path)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent)
-    os.fchmod(fd, 0o666 & ~_umask())  # mkstemp makes 0600
-    os.close(fd)
     try:
-        fig.savefig(tmp, format="png", dpi=100)
-        os.replace(tmp, out)
-    except BaseException:
-        with contextlib.suppress(OSError):
-            os.unlink(tmp)
-        raise
+        with atomic_file(out) as f:
+            fig.savefig(f, format="png", dpi=100)
     finally:
         plt.close(fig)
     return out

@@ -8,14 +8,13 @@ from __future__ import annotations
 
 import math
 import os
-import tempfile
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from yawil.fileio import default_file_mode
+from yawil.fileio import atomic_file
 from yawil.sim.town.geometry import ActorView, Box, TownGeometry
 from yawil.sim.types import Pose
 
@@ -128,15 +127,5 @@ def _save_atomic(fig: Any, path: Path) -> None:
 
     if fig.canvas is None or not isinstance(fig.canvas, FigureCanvasAgg):
         FigureCanvasAgg(fig)
-    fmt = path.suffix[1:].lower() or "png"
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as f:
-            os.fchmod(f.fileno(), default_file_mode())  # mkstemp makes 0600
-            fig.savefig(f, format=fmt, bbox_inches="tight")
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    with atomic_file(path) as f:
+        fig.savefig(f, format=path.suffix[1:].lower() or "png", bbox_inches="tight")

@@ -66,6 +66,17 @@ def test_export_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> No
     with pytest.raises(ValueError, match="opset"):
         export_onnx(_checkpoint(tmp_path, "cil"), tmp_path / "x.onnx", opset=13)
     assert not (tmp_path / "x.onnx").exists()
+    assert main(["export", str(_checkpoint(tmp_path, "cil")), "--onnx", str(tmp_path)]) == 2
+    assert "is a folder" in capsys.readouterr().err
+
+
+def test_a_failed_check_writes_no_model(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    ckpt = _checkpoint(tmp_path, "cil")
+    out = tmp_path / "cil.onnx"
+    assert main(["export", str(ckpt), "--onnx", str(out), "--check", "--tolerance", "-1"]) == 1  # cannot pass
+    printed = capsys.readouterr().out
+    assert "FAIL" in printed and "not written" in printed and not out.exists()
+    assert [p.name for p in tmp_path.iterdir() if p.name.startswith(".")] == []
 
 
 @pytest.mark.slow

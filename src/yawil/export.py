@@ -13,6 +13,7 @@ Export uses torch's TorchScript-based exporter (`dynamo=False`): the torch.expor
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -186,15 +187,25 @@ def check_onnx(checkpoint: str | Path, onnx_path: str | Path, batch: int = 4, se
 
 
 def run(args: argparse.Namespace) -> int:
+    final = Path(args.onnx)
+    if final.is_dir():
+        print(f"yawil export: --onnx {final} is a folder; expected the path of the .onnx file to write", file=sys.stderr)
+        return 2
+    # with --check the graph is checked under a temporary name and takes its place only if it passes
+    target = final.with_name(f".{final.name}.unchecked") if args.check else final
     try:
-        path = export_onnx(args.checkpoint, args.onnx, args.opset)
+        path = export_onnx(args.checkpoint, target, args.opset)
     except (ValueError, FileNotFoundError) as err:
         print(f"yawil export: {err}", file=sys.stderr)
         return 2
-    print(f"wrote {path}")
     if not args.check:
+        print(f"wrote {path}")
         return 0
-    results = check_onnx(args.checkpoint, path, batch=args.batch)
+    try:
+        results = check_onnx(args.checkpoint, path, batch=args.batch)
+    except BaseException:
+        path.unlink(missing_ok=True)
+        raise
     all_ok = True
     for a in results:
         ok = a.ok(args.tolerance, args.attention_tolerance)
@@ -205,4 +216,10 @@ def run(args: argparse.Namespace) -> int:
         f"onnxruntime vs torch: max abs difference {worst:.3g} on actions/speed "
         f"({'ok' if all_ok else 'FAIL'}; tolerance {args.tolerance:g}, attention {args.attention_tolerance:g})"
     )
-    return 0 if all_ok else 1
+    if not all_ok:
+        path.unlink(missing_ok=True)
+        print(f"not written: {final} (the check failed)")
+        return 1
+    os.replace(path, final)
+    print(f"wrote {final}")
+    return 0

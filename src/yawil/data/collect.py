@@ -738,6 +738,8 @@ class _Progress:
     def frame(self, episode: int, n: int) -> None:
         self.live[episode] = self.live.get(episode, 0) + n
         self.bar.update(n)
+        if self.bar.total and self.bar.n > self.bar.total:  # episodes are stored whole: the budget is a floor
+            self.bar.total = self.bar.n
 
     def drain(self, q: Any) -> None:
         while True:

@@ -47,7 +47,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                    help="'train', 'test', 'all' or comma-separated weather names (default train)")
     budget = p.add_argument_group("budget (the first one reached stops the run)")
     budget.add_argument("--frames", type=int, default=None,
-                        help="stop once the dataset holds this many frames (default 200000 unless --episodes)")
+                        help="stop once the dataset holds this many frames; episodes are stored whole, so the last one may go past it (default 200000 unless --episodes)")
     budget.add_argument("--episodes", type=int, default=None, help="episode indices 0..N-1 of this seed")
     p.add_argument("--out", required=True, help="dataset directory (created, or resumed); required")
     p.add_argument("--workers", type=int, default=1,

@@ -95,6 +95,9 @@ def test_aux_training_keep_steps_and_init_from(tmp_path: Path) -> None:
                speed_dropout=0.5, max_steps=3)
     result = train(cfg)
     assert result.steps == 3 and math.isfinite(result.best_val)
+    # validation reports what --speed-control would drive by: the target-speed error in m/s
+    assert math.isfinite(result.metrics[-1]["val_l1_target_speed"]) and result.metrics[-1]["val_l1_target_speed"] >= 0
+    assert math.isnan(train(_cfg(tmp_path, "plain", data, max_steps=1)).metrics[-1]["val_l1_target_speed"])
     kept = load_checkpoint(tmp_path / "aux" / "step_000001.pt")
     assert kept["step"] == 1 and (tmp_path / "aux" / "step_000002.pt").is_file()
     assert not (tmp_path / "aux" / "step_000003.pt").exists()

@@ -473,8 +473,9 @@ class TrainResult:
 # ------------------------------------------------------------------------------------------------- loop
 METRIC_FIELDS = (
     "epoch", "step", "train_loss", "val_loss", "val_l1_steer", "val_l1_throttle", "val_l1_brake",
-    "val_l1_speed", "val_brake_recall", "lr", "time", "samples_per_s",
+    "val_l1_speed", "val_brake_recall", "val_l1_target_speed", "val_stop_recall", "lr", "time", "samples_per_s",
 )  # fmt: skip
+STOP_TARGET = 1.0  # m/s: an expert target below this while the car moves is a stop (car, light, pedestrian)
 
 
 @torch.inference_mode()
@@ -487,6 +488,7 @@ def validate(
     total, n = 0.0, 0
     abs_sum = torch.zeros(4, dtype=torch.float64)
     slowing, caught = 0, 0  # frames where the expert brakes at speed, and those where the net brakes too
+    ts_err, ts_n, stops, stops_seen = 0.0, 0, 0, 0  # aux head: target-speed error (m/s), stops foreseen
     uses_command = bool(getattr(model, "uses_command", False))
     for raw in loader:
         b = prepare_batch(raw, norm, kind, uses_command, runtime)
@@ -501,16 +503,28 @@ def validate(
         want = (b.action[:, 2] > BRAKE_LABEL) & (b.speed_raw[:, 0] > BRAKE_MIN_SPEED)
         slowing += int(want.sum())
         caught += int((want & (pred[:, 2] >= BRAKE_LABEL)).sum())
+        if out.aux is not None and b.privileged is not None:  # what `--speed-control` would drive by
+            target = b.privileged[:, 0]
+            known = target.isfinite()
+            guess = norm.speed_inverse(out.aux[:, :1].float())[:, 0].clamp_min(0.0)
+            ts_err += float((guess - target).abs()[known].sum())
+            ts_n += int(known.sum())
+            stop = known & (target < STOP_TARGET) & (b.speed_raw[:, 0] > BRAKE_MIN_SPEED)
+            stops += int(stop.sum())
+            stops_seen += int((stop & (guess < STOP_TARGET)).sum())
     model.train(was_training)
     if n == 0:
         raise ValueError("the validation split is empty: use more episodes or a larger val_fraction")
     l1 = (abs_sum / n).tolist()
     recall = caught / slowing if slowing else math.nan  # the agent's brake threshold is BRAKE_LABEL too
     return {"val_loss": total / n, "val_l1_steer": l1[0], "val_l1_throttle": l1[1], "val_l1_brake": l1[2],
-            "val_l1_speed": l1[3], "val_brake_recall": recall}
+            "val_l1_speed": l1[3], "val_brake_recall": recall,
+            "val_l1_target_speed": ts_err / ts_n if ts_n else math.nan,
+            "val_stop_recall": stops_seen / stops if stops else math.nan}
 
 
-VAL_KEYS = ("val_loss", "val_l1_steer", "val_l1_throttle", "val_l1_brake", "val_l1_speed", "val_brake_recall")
+VAL_KEYS = ("val_loss", "val_l1_steer", "val_l1_throttle", "val_l1_brake", "val_l1_speed", "val_brake_recall",
+            "val_l1_target_speed", "val_stop_recall")
 
 
 def _loader(dataset: Any, batches: list[list[int]], cfg: TrainConfig, runtime: Runtime) -> Any:

@@ -21,6 +21,7 @@ from typing import Any
 
 import numpy as np
 
+from yawil.guidance import wrap_to_pi
 from yawil.sim.types import DT, AgentState, Control, LightState, Observation, RoadOption, Route, wrap_angle
 
 
@@ -212,10 +213,6 @@ class _RouteCache:
         lo = max(int(np.searchsorted(self.s, s0, side="right")) - 1, 0)
         hi = min(int(np.searchsorted(self.s, s1, side="left")) + 1, len(self.heading))
         return lo, max(hi, lo + 1)
-
-
-def _wrap(a: np.ndarray) -> np.ndarray:
-    return np.asarray(np.remainder(a + math.pi, 2.0 * math.pi) - math.pi)
 
 
 class _Corridor:
@@ -497,7 +494,7 @@ class Expert:
         rear = s_ego - 0.5 * cfg.length
 
         s0, d0, h0 = proj.project(pos)
-        rel0 = _wrap(yaw - h0)
+        rel0 = wrap_to_pi(yaw - h0)
         e_lon, e_lat = _extents(rel0, length, width)
         in_corr = d0 < margin + e_lat
         behind = in_corr & (s0 - e_lon < rear)  # beside or behind the ego in its lane: not ours to stop for
@@ -592,7 +589,7 @@ class Expert:
             c, s = math.cos(ls.yaw), math.sin(ls.yaw)
             rx, ry = ls.x - pos[:, 0], ls.y - pos[:, 1]
             ahead = rx * c + ry * s - 0.5 * length  # front bumper to the stop line
-            lane = (np.abs(-rx * s + ry * c) < 1.75) & (np.abs(_wrap(yaw - ls.yaw)) < math.radians(30.0))
+            lane = (np.abs(-rx * s + ry * c) < 1.75) & (np.abs(wrap_to_pi(yaw - ls.yaw)) < math.radians(30.0))
             stops = ~is_ped & lane & (ahead > -0.5) & (ahead < 60.0)
             if ls.state == "yellow":
                 stops &= ahead >= spd * spd / (2.0 * self.config.traffic_yellow_decel)
@@ -621,7 +618,7 @@ class Expert:
         step = seg[..., None] * np.stack([np.cos(theta), np.sin(theta)], axis=-1)
         p = pos[:, None, :] + np.cumsum(step, axis=1)  # (m, T, 2)
         s, d, h = proj.project(p)
-        rel = _wrap(theta - h)
+        rel = wrap_to_pi(theta - h)
         e_lon, e_lat = _extents(rel, length[:, None], width[:, None])
         horizon = np.where(is_ped, cfg.pedestrian_horizon, cfg.vehicle_horizon)
         inside = (d < margin[:, None] + e_lat) & (s - e_lon > front - 0.5) & (t[None, :] <= horizon[:, None] + 1e-9)
@@ -668,7 +665,7 @@ class Expert:
             to_entry = entry - front
             if to_entry < 0.0 or to_entry > 20.0:
                 continue
-            rel = np.abs(_wrap(yaw - h))
+            rel = np.abs(wrap_to_pi(yaw - h))
             crossing = (rel > math.radians(30.0)) & (rel < math.radians(150.0))
             busy = (~is_ped & ~in_corr & (spd > 0.5) & crossing & (s >= entry) & (s <= exit_)
                     & (d < cfg.junction_watch + e_lat))

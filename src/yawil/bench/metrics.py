@@ -35,9 +35,11 @@ ROUTE_EVERY_M = 5  # store one route waypoint every ~5 m (route waypoints are ~1
 
 def timeout_for(length_m: float) -> float:
     """NoCrash's time budget for a route of `length_m` metres: 5 km/h average plus 20 s."""
+    from yawil.sim.criteria import nocrash_timeout  # the one formula, also the worlds' default
+
     if not math.isfinite(length_m) or length_m < 0:
         raise ValueError(f"route length must be a finite number >= 0 metres, got {length_m!r}")
-    return (length_m / 1000.0) / 5.0 * 3600.0 + 20.0
+    return nocrash_timeout(length_m)
 
 
 def collision_reason(other_type: str | None) -> str:

@@ -21,6 +21,9 @@ from typing import Protocol, runtime_checkable
 import numpy as np
 
 DT = 0.1  # seconds per step, for every backend
+# Shared by every backend, so that the agent and expert see the same observation whichever world made it:
+COMMAND_LOOKAHEAD = 3  # waypoints ahead of the ego's projection whose road option is the command
+PRIVILEGED_RADIUS = 50.0  # metres: the actors listed in the privileged observation
 
 
 class RoadOption(IntEnum):

@@ -53,7 +53,9 @@ from yawil.sim.criteria import (
     nocrash_timeout,
 )
 from yawil.sim.types import (
+    COMMAND_LOOKAHEAD,
     DT,
+    PRIVILEGED_RADIUS,
     AgentState,
     Control,
     Event,
@@ -67,8 +69,6 @@ from yawil.sim.types import (
 )
 from yawil.sim.weather import get_weather
 
-COMMAND_LOOKAHEAD = 3  # as the embedded world: the option of the waypoint 3 m ahead is the command
-PRIVILEGED_RADIUS = 50.0
 EGO_BLUEPRINT = "vehicle.lincoln.mkz_2017"
 SPAWN_CLEARANCE = 15.0  # metres between the ego's start and any vehicle spawn point
 SENSOR_TIMEOUT = 10.0  # seconds to wait for the camera frame of a tick

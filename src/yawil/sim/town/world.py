@@ -32,7 +32,9 @@ from yawil.sim.town.regions import JUNCTION_BASE
 from yawil.sim.town.town import Town, get_town, lane_heading_at
 from yawil.sim.town.vehicles import VEHICLE_COLORS, Vehicles
 from yawil.sim.types import (
+    COMMAND_LOOKAHEAD,
     DT,
+    PRIVILEGED_RADIUS,
     AgentState,
     Control,
     Event,
@@ -46,8 +48,6 @@ from yawil.sim.types import (
 )
 from yawil.sim.weather import get_weather
 
-COMMAND_LOOKAHEAD = 3  # waypoints ahead of the ego's projection whose option is the command
-PRIVILEGED_RADIUS = 50.0
 EGO_ID = 0
 EGO_COLOR = (0.15, 0.35, 0.75)
 EGO_COMMIT_S = 2.0  # s: traffic treats the ego as in the junction it will reach within this time

@@ -24,7 +24,7 @@ def folder_lock(folder: str | os.PathLike[str], what: str) -> Iterator[Path]:
     process, or a second lock of the same folder in this one)."""
     folder = Path(folder)
     if folder.exists() and not folder.is_dir():
-        raise ValueError(f"{folder}: is a file; expected the {what}'s folder")
+        raise ValueError(f"{folder}: is a file; expected a folder for the {what}")
     folder.mkdir(parents=True, exist_ok=True)
     path = folder / LOCK_FILE
     lock = FileLock(str(path), timeout=0, mode=0o644)

@@ -31,9 +31,20 @@ class ChoiceHelp(argparse.Action):
         parser.exit()
 
 
-def add_choice_help(p: argparse.ArgumentParser, choice_dest: str,
-                    helps: dict[str, Callable[[str], argparse.ArgumentParser]]) -> None:
-    """Give `p` (made with add_help=False) a -h/--help that knows the choice of its positional `choice_dest`."""
+def add_choice_help(p: argparse.ArgumentParser, choice_dest: str, descriptions: dict[str, str],
+                    add_options: Callable[[argparse.ArgumentParser, str], None]) -> None:
+    """Give `p` (made with add_help=False) a -h/--help that knows the choice of its positional `choice_dest`:
+    each choice's help is a parser with its description and the options `add_options(parser, choice)` adds."""
+
+    def parser_of(choice: str) -> Callable[[str], argparse.ArgumentParser]:
+        def build(prog: str) -> argparse.ArgumentParser:
+            sub = argparse.ArgumentParser(prog=f"{prog}{choice}", description=descriptions[choice])
+            add_options(sub, choice)
+            return sub
+
+        return build
+
+    helps = {choice: parser_of(choice) for choice in descriptions}
     p.add_argument("-h", "--help", action=ChoiceHelp, choice_dest=choice_dest, helps=helps,
                    help=f"show this help message and exit; after {' or '.join(helps)}: that one's help")
 
@@ -56,15 +67,6 @@ def _add_route_options(p: argparse.ArgumentParser | argparse._ArgumentGroup, act
                        help=f"{'routes: ' if action is None else ''}seed of the route draw (default 0)")
 
 
-def _route_action_parser(action: str) -> Callable[[str], argparse.ArgumentParser]:
-    def build(prog: str) -> argparse.ArgumentParser:
-        p = argparse.ArgumentParser(prog=f"{prog}{action}", description=_ROUTE_ACTIONS[action])
-        _add_route_options(p, action)
-        return p
-
-    return build
-
-
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:  # type: ignore[type-arg]
     p = subparsers.add_parser(
         "bench",
@@ -73,7 +75,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         "`routes` to generate the route files, `validate` to check them with the current planner.",
         add_help=False,
     )
-    add_choice_help(p, "action", {a: _route_action_parser(a) for a in _ROUTE_ACTIONS})
+    add_choice_help(p, "action", _ROUTE_ACTIONS, _add_route_options)
     p.add_argument("action", nargs="?", default="run", choices=("run", "routes", "validate"),
                    help="run (default): drive the episodes; routes, validate: the route files")
     p.add_argument("--suite", default=None, help="corl2017 | nocrash | all | square (default nocrash)")

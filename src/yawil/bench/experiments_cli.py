@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import argparse
-from collections.abc import Callable
 
 from yawil.bench.cli import add_choice_help  # argparse only, like this module
 
@@ -35,15 +34,6 @@ def _add_options(p: argparse.ArgumentParser, which: str | None) -> None:
                        help=tag("noise") + "comma-separated methods to test instead of the passing ones")
 
 
-def _which_parser(which: str) -> Callable[[str], argparse.ArgumentParser]:
-    def build(prog: str) -> argparse.ArgumentParser:
-        p = argparse.ArgumentParser(prog=f"{prog}{which}", description=_DESCRIPTIONS[which])
-        _add_options(p, which)
-        return p
-
-    return build
-
-
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:  # type: ignore[type-arg]
     p = subparsers.add_parser(
         "experiment",
@@ -53,7 +43,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         "(guided) or wrong commands (CIL), write table2.md. Every stage is skipped when its output exists.",
         add_help=False,
     )
-    add_choice_help(p, "which", {w: _which_parser(w) for w in _DESCRIPTIONS})
+    add_choice_help(p, "which", _DESCRIPTIONS, _add_options)
     p.add_argument("which", choices=("square", "noise"))
     _add_options(p, None)
     return p

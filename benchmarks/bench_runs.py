@@ -13,7 +13,7 @@ import argparse
 import time
 from collections import defaultdict
 
-from yawil.bench.records import iter_results
+from yawil.bench.records import episode_key, iter_results
 from yawil.bench.runner import AgentSpec, run_benchmark
 from yawil.bench.suites import episodes
 
@@ -35,7 +35,7 @@ def main() -> None:
     keys = {e.key for e in eps}
     per: dict[str, list[dict]] = defaultdict(list)
     for r in iter_results(args.out):
-        if f"{r['task']}/{r['condition']}/{r['route_id']}/{r['seed']}" in keys:
+        if episode_key(r) in keys:
             per[r["task"]].append(r)
     print(f"\n{args.agent}, suite {args.suite}, condition {args.condition}, workers {args.workers}")
     print(f"{'task':<12}{'episodes':>9}{'success':>9}{'sim s':>10}{'ep wall s':>11}{'steps/s':>9}")

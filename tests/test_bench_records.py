@@ -9,6 +9,8 @@ import pytest
 
 from yawil.bench.records import (
     EPISODES_FILE,
+    PROTOCOL,
+    RUN_FILE,
     EpisodeLog,
     check_run_info,
     episode_key,
@@ -18,7 +20,8 @@ from yawil.bench.records import (
 
 
 def _rec(i: int) -> dict:
-    return {"task": "straight", "condition": "training", "route_id": i, "seed": 0, "success": True, "km_driven": 0.1}
+    return {"protocol": PROTOCOL, "task": "straight", "condition": "training", "weather": "ClearNoon", "route_id": i,
+            "seed": 0, "success": True, "km_driven": 0.1}
 
 
 def test_append_and_resume(tmp_path: Path) -> None:
@@ -26,7 +29,7 @@ def test_append_and_resume(tmp_path: Path) -> None:
         for i in range(3):
             log.append(_rec(i))
     log2 = EpisodeLog(tmp_path)
-    assert len(log2.records) == 3 and "straight/training/1/0" in log2
+    assert len(log2.records) == 3 and "straight/training/ClearNoon/1/0" in log2
     with pytest.raises(ValueError, match="already"):
         log2.append(_rec(1))
     log2.close()
@@ -68,9 +71,9 @@ def test_duplicate_keys_in_file_are_an_error(tmp_path: Path) -> None:
 
 
 def test_key_and_run_identity(tmp_path: Path) -> None:
-    assert episode_key(_rec(4)) == "straight/training/4/0"
+    assert episode_key(_rec(4)) == "straight/training/ClearNoon/4/0"
     with pytest.raises(ValueError, match="route_id"):
-        episode_key({"task": "x", "condition": "y", "seed": 0})
+        episode_key({"task": "x", "condition": "y", "weather": "w", "seed": 0})
     check_run_info(tmp_path, {"agent": "expert", "agent_options": {}})
     check_run_info(tmp_path, {"agent": "expert", "agent_options": {}})
     with pytest.raises(ValueError, match="another --out"):
@@ -100,7 +103,7 @@ def test_a_changed_checkpoint_or_label_is_refused_on_resume(tmp_path: Path) -> N
 
 def test_iter_results_refuses_a_repeated_episode(tmp_path: Path) -> None:
     (tmp_path / EPISODES_FILE).write_text(json.dumps(_rec(0)) + "\n" + json.dumps(_rec(1)) + "\n" + json.dumps(_rec(0)) + "\n")
-    with pytest.raises(ValueError, match="record 3 repeats episode straight/training/0/0"):
+    with pytest.raises(ValueError, match="record 3 repeats episode straight/training/ClearNoon/0/0"):
         list(iter_results(tmp_path))
 
 
@@ -123,4 +126,17 @@ def test_iter_results_refuses_a_record_it_cannot_count(tmp_path: Path, change: d
 
 def test_iter_results_needs_a_results_folder(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="episodes.jsonl"):
+        list(iter_results(tmp_path))
+
+
+def test_results_of_another_protocol_are_refused(tmp_path: Path) -> None:
+    """Protocol 1 (each route in one weather, one timeout): refused on resume and by the report's reader."""
+    check_run_info(tmp_path, {"agent": "expert", "agent_options": {}})
+    assert json.loads((tmp_path / RUN_FILE).read_text())["protocol"] == PROTOCOL
+    (tmp_path / RUN_FILE).write_text(json.dumps({"agent": "expert", "agent_options": {}}))  # written before protocol 2
+    with pytest.raises(ValueError, match="protocol 1 .*new folder"):
+        check_run_info(tmp_path, {"agent": "expert", "agent_options": {}})
+    old = {k: v for k, v in _rec(0).items() if k != "protocol"}
+    (tmp_path / EPISODES_FILE).write_text(json.dumps(old) + "\n")
+    with pytest.raises(ValueError, match="record 1: written under benchmark protocol 1"):
         list(iter_results(tmp_path))

@@ -13,7 +13,7 @@ from pathlib import Path
 import pytest
 
 from yawil import __version__
-from yawil.bench.records import EpisodeLog, check_run_info
+from yawil.bench.records import PROTOCOL, EpisodeLog, check_run_info
 from yawil.bench.report import (
     git_commit,
     load_results,
@@ -45,7 +45,8 @@ def _write(folder: Path, label: str, ok_by_seed: dict[str, list[int]]) -> None:
                     for rid in range(4):
                         ok = rid < n_ok
                         log.append({
-                            "suite": "nocrash", "task": task, "condition": cond, "route_id": rid, "seed": seed,
+                            "protocol": PROTOCOL, "suite": "nocrash", "task": task, "condition": cond,
+                            "weather": "ClearNoon", "route_id": rid, "seed": seed,
                             "success": ok, "reason": None if ok else "collision_vehicle", "km_driven": 0.5,
                             "lane_opposite": 1, "lane_offroad": 0, "red_lights": seed, "lights_passed": 4,
                             "trajectory": [[0, 0], [10, 0], [10, 10]], "route_xy": [[0, 0], [10, 0], [10, 12]],

@@ -12,6 +12,7 @@ import pytest
 from yawil.bench.routegen import classify, route_turns, validate_with_planner
 from yawil.bench.suites import ROUTES_DIR, episodes, get_task, load_routes, parse_range
 from yawil.sim.types import Route
+from yawil.sim.weather import TEST_WEATHERS, TRAIN_WEATHERS
 
 
 @pytest.mark.parametrize("town", ["town01", "town02", "square"])
@@ -89,22 +90,54 @@ def test_validation_catches_a_route_the_planner_no_longer_matches(tmp_path: Path
 
 def test_episode_lists_follow_the_protocol() -> None:
     eps = episodes("nocrash", conditions=["training"])
-    # Empty (= Navigation) static: 25 x 5 seeds; Regular and Dense dynamic: 25 x 3 each
-    assert len(eps) == 25 * 5 + 2 * 25 * 3
+    # every route in each of the 4 training weathers: Empty static 25 x 4 x 5 seeds; Regular, Dense 25 x 4 x 3
+    assert len(eps) == 25 * 4 * 5 + 2 * 25 * 4 * 3
     assert len({e.key for e in eps}) == len(eps)
     reg = [e for e in eps if e.task == "regular"]
     assert {(e.vehicles, e.pedestrians) for e in reg} == {(30, 10)}
     assert {(e.vehicles, e.pedestrians) for e in eps if e.task == "dense"} == {(50, 30)}
-    assert [e.weather for e in reg[:5]] == ["ClearNoon", "WetNoon", "HardRainNoon", "ClearSunset", "ClearNoon"]
+    assert [(e.route_id, e.weather) for e in reg[:5]] == [
+        (0, "ClearNoon"), (0, "WetNoon"), (0, "HardRainNoon"), (0, "ClearSunset"), (1, "ClearNoon")]
+    # the weathers of one route and seed share the world seed: weather is their only difference
+    assert len({e.world_seed for e in reg[:4]}) == 1 and reg[4].world_seed != reg[0].world_seed
     nt = episodes("corl2017", conditions=["new-town-weather"], tasks=["straight"], routes="0:3", seeds=2)
     assert [(e.route_id, e.seed, e.weather, e.town) for e in nt][:3] == [
-        (0, 0, "WetCloudyNoon", "town02"), (1, 0, "SoftRainSunset", "town02"), (2, 0, "WetCloudyNoon", "town02")]
-    assert len(nt) == 6 and nt[0].timeout_s == pytest.approx(nt[0].route.length_m / 1000 / 5 * 3600 + 20)
-    assert get_task("empty").name == "navigation"
+        (0, 0, "WetCloudyNoon", "town02"), (0, 0, "SoftRainSunset", "town02"), (1, 0, "WetCloudyNoon", "town02")]
+    assert len(nt) == 12
+    # each suite's own time budget: CoRL2017 10 km/h + 10 s, NoCrash 5 km/h + 20 s
+    assert nt[0].timeout_s == pytest.approx(nt[0].route.length_m / 1000 / 10 * 3600 + 10)
+    assert reg[0].timeout_s == pytest.approx(reg[0].route.length_m / 1000 / 5 * 3600 + 20)
+    # the cycle rule (preset eval100): route i in weather i mod n, a quarter of the episodes
+    cyc = episodes("corl2017", conditions=["new-town-weather"], tasks=["straight"], routes="0:3", seeds=2,
+                   weather_rule="cycle")
+    assert [(e.route_id, e.weather) for e in cyc][:3] == [
+        (0, "WetCloudyNoon"), (1, "SoftRainSunset"), (2, "WetCloudyNoon")]
+    assert get_task("nav").name == "navigation"
     with pytest.raises(ValueError, match="not in suite"):
         episodes("corl2017", tasks=["dense"])
     with pytest.raises(ValueError, match="unknown condition"):
         episodes("nocrash", conditions=["moon"])
+    with pytest.raises(ValueError, match="unknown weather rule"):
+        episodes("nocrash", weather_rule="some")
+
+
+def test_published_suites_have_their_densities_and_conditions() -> None:
+    """NoCrash as published (per-town densities, four conditions) and CoRL2017's Navigation Dynamic."""
+    eps = episodes("nocrash-original", routes="0:1", seeds=1)
+    traffic = {(e.task, e.condition): (e.vehicles, e.pedestrians) for e in eps}
+    assert traffic[("nocrash_dense", "training")] == (100, 250)
+    assert traffic[("nocrash_dense", "new-weather")] == (100, 250)
+    assert traffic[("nocrash_dense", "new-town")] == (70, 150)
+    assert traffic[("nocrash_regular", "new-town-weather")] == (15, 50)
+    assert traffic[("empty", "new-town")] == (0, 0)
+    assert {e.condition for e in eps} == {"training", "new-weather", "new-town", "new-town-weather"}
+    assert {(e.condition, e.town, e.weather) for e in eps if e.task == "empty"} == {
+        *(("training", "town01", w) for w in TRAIN_WEATHERS), *(("new-weather", "town01", w) for w in TEST_WEATHERS),
+        *(("new-town", "town02", w) for w in TRAIN_WEATHERS),
+        *(("new-town-weather", "town02", w) for w in TEST_WEATHERS)}
+    dyn = episodes("corl2017", tasks=["nav_dynamic"], routes="0:1", seeds=1)
+    assert {(e.town, e.vehicles, e.pedestrians) for e in dyn} == {("town01", 20, 50), ("town02", 15, 50)}
+    assert all(e.timeout_s == pytest.approx(e.route.length_m / 1000 / 10 * 3600 + 10) for e in dyn)
 
 
 def test_parse_range() -> None:

@@ -62,7 +62,7 @@ class Gas:
 
 
 def test_success_collision_timeout_and_resume(tmp_path: Path) -> None:
-    eps = episodes("corl2017", conditions=["training"], tasks=["straight"], routes="0:3", seeds=1)
+    eps = episodes("corl2017", conditions=["training"], tasks=["straight"], routes="0:3", seeds=1, weather_rule="cycle")
     world = LineWorld()
     spec = AgentSpec("scripted")
     s = run_benchmark(eps[:2], spec, tmp_path, world_factory=lambda: world, agent_factory=lambda seed: Gas(),
@@ -93,6 +93,23 @@ def test_timeout_when_the_agent_does_not_move(tmp_path: Path) -> None:
     assert rec["reason"] == "timeout" and rec["time_s"] == pytest.approx(ep.timeout_s, abs=0.1)
 
 
+def test_an_agent_that_stops_for_good_is_blocked_one_that_creeps_is_not(tmp_path: Path) -> None:
+    """The `blocked` end: BLOCKED_S without PROGRESS_M of route progress, long before NoCrash's timeout."""
+    from yawil.bench.metrics import BLOCKED_S
+
+    ep = episodes("nocrash", conditions=["training"], tasks=["empty"], routes="0", seeds=1, weather_rule="cycle")[0]
+    assert ep.timeout_s > 5 * BLOCKED_S
+    s = run_benchmark([ep], AgentSpec("scripted"), tmp_path / "a", world_factory=LineWorld,
+                      agent_factory=lambda seed: Gas(0.0), progress=False)
+    rec = s.records[0]
+    assert rec["reason"] == "blocked" and rec["time_s"] == pytest.approx(BLOCKED_S)
+    assert rec["max_stall_s"] == pytest.approx(BLOCKED_S)
+    # 1.2 cm a step: a metre every 8.4 s, slow but moving on: it reaches the goal
+    s = run_benchmark([ep], AgentSpec("scripted"), tmp_path / "b", world_factory=LineWorld,
+                      agent_factory=lambda seed: Gas(0.006), progress=False)
+    assert s.records[0]["success"] and s.records[0]["max_stall_s"] < 10.0
+
+
 def test_bad_agent_and_workers(tmp_path: Path) -> None:
     eps = episodes("corl2017", conditions=["training"], tasks=["straight"], routes="0", seeds=1)
     with pytest.raises(ValueError, match="checkpoint"):
@@ -101,6 +118,13 @@ def test_bad_agent_and_workers(tmp_path: Path) -> None:
         run_benchmark(eps, AgentSpec("expert"), tmp_path / "b", workers=0, progress=False)
     with pytest.raises(ValueError, match="not to the expert"):
         run_benchmark(eps, AgentSpec("expert", yaw_noise_deg=10), tmp_path / "c", progress=False)
+    (tmp_path / "x.pt").write_bytes(b"")
+    with pytest.raises(ValueError, match="--yaw-noise 'both'"):
+        AgentSpec(str(tmp_path / "x.pt"), yaw_noise_deg=10, yaw_noise_mode="both").validate()
+    # a reading is part of the agent's options (so a resume cannot mix readings) only where its noise is on
+    assert AgentSpec("a", yaw_noise_deg=10, yaw_noise_mode="independent").options() == {
+        "yaw_noise_deg": 10, "command_noise_p": 0.0, "yaw_noise_mode": "independent"}
+    assert AgentSpec("a", yaw_noise_mode="independent").options() == {"yaw_noise_deg": 0.0, "command_noise_p": 0.0}
 
 
 def test_the_eval100_preset_is_the_fixed_recipe_comparison_set() -> None:
@@ -110,8 +134,8 @@ def test_the_eval100_preset_is_the_fixed_recipe_comparison_set() -> None:
 
     args = build_parser().parse_args(["bench", "--preset", "eval100", "--agent", "expert"])
     apply_preset(args)
-    eps = episodes(args.suite, _split(args.condition), None, args.routes, args.seeds)
-    assert len(eps) == 100 and {e.seed for e in eps} == {0}
+    eps = episodes(args.suite, _split(args.condition), None, args.routes, args.seeds, weather_rule=args.weather_rule)
+    assert len(eps) == 100 and {e.seed for e in eps} == {0} and args.weather_rule == "cycle"
     assert {e.task for e in eps} == {"straight", "one_turn", "navigation", "regular", "dense"}
     assert {e.condition for e in eps} == {"training", "new-town-weather"}
     clash = build_parser().parse_args(["bench", "--preset", "eval100", "--seeds", "3"])
@@ -127,7 +151,7 @@ def test_record_writes_a_video_per_episode(tmp_path: Path) -> None:
     from yawil.bench.runner import AgentSpec, run_benchmark
     from yawil.bench.suites import episodes
 
-    eps = episodes("corl2017", ["training"], ["straight"], routes="0:1", seeds=1)
+    eps = episodes("corl2017", ["training"], ["straight"], routes="0:1", seeds=1, weather_rule="cycle")
     run_benchmark(eps, AgentSpec("expert"), tmp_path / "r", record=True, progress=False)
     videos = list((tmp_path / "r" / "videos").iterdir())
     assert len(videos) == 1 and videos[0].stat().st_size > 10_000

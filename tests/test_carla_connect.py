@@ -24,7 +24,8 @@ from yawil.sim.carla.routes import connect as connect_mod
 from yawil.sim.carla.topology import CarlaTopology
 
 FIX = Path(__file__).parent / "fixtures" / "carla"
-RUN = ["bench", "--backend", "carla", "--suite", "corl2017", "--tasks", "straight", "--seeds", "1", "--no-progress"]
+RUN = ["bench", "--backend", "carla", "--suite", "corl2017", "--tasks", "straight", "--seeds", "1", "--no-progress",
+       "--weather-rule", "cycle"]
 
 
 @pytest.fixture

@@ -105,9 +105,9 @@ def test_onpolicy_needs_both_parts() -> None:
 
 
 def test_dagger_world_seeds_and_routes_are_disjoint_from_the_benchmarks() -> None:
-    from yawil.bench.suites import episodes
+    from yawil.bench.suites import SUITES, episodes
 
-    bench = episodes("all") + episodes("square")  # every protocol episode of every suite, default seeds
+    bench = [ep for suite in SUITES for ep in episodes(suite)]  # every protocol episode of every suite
     assert max(ep.world_seed for ep in bench) < BENCH_WORLD_SEED_LIMIT
     cfg = CollectConfig()
     seeds = [plan_episode(cfg, s, i, BENCH_WORLD_SEED_LIMIT).world_seed for s in (1000, 2000, 1001) for i in range(300)]
@@ -205,7 +205,8 @@ def test_select_picks_the_checkpoint_that_drives_best(tmp_path: Path, monkeypatc
         who = Path(spec.agent).parent.name
         with EpisodeLog(out) as log:
             for i, ep in enumerate(eps):
-                log.append({"task": ep.task, "condition": ep.condition, "route_id": ep.route_id, "seed": ep.seed,
+                log.append({"task": ep.task, "condition": ep.condition, "weather": ep.weather, "route_id": ep.route_id,
+                            "seed": ep.seed,
                             "success": i < wins[who], "km_driven": 0.1,
                             "collisions": [{"type": "vehicle"}] if i == len(eps) - 1 and crashes[who] else []})
 

@@ -271,6 +271,29 @@ def test_compute_guidance_shapes_noise_and_determinism() -> None:
         runs[0].yaw[0] = 1.0  # read-only
 
 
+def test_yaw_noise_readings_raw_and_independent() -> None:
+    """Table II's two readings: raw noise on the headings (y[0] stays 0, the rest get sqrt(2) sigma,
+    correlated) against independent N(0, sigma^2) on each component after the subtraction."""
+    xy = np.column_stack((np.arange(0.0, 60.0), np.zeros(60)))
+    lane = np.zeros(60)
+    cfg = GuidanceConfig(spacing=1.5, count=7)
+    sigma = 10.0
+
+    def draw(mode: str) -> np.ndarray:
+        rng = np.random.default_rng(3)
+        return np.stack([compute_guidance(xy, lane, [3.0, 0.0], 0.0, BOUNDS, cfg, yaw_noise_deg=sigma, rng=rng,
+                                          yaw_noise_mode=mode)[0].yaw for _ in range(4000)])
+
+    raw, ind = np.rad2deg(draw("raw")), np.rad2deg(draw("independent"))
+    assert np.all(raw[:, 0] == 0.0) and np.std(raw[:, 1:]) == pytest.approx(sigma * math.sqrt(2), rel=0.05)
+    assert np.corrcoef(raw[:, 1], raw[:, 2])[0, 1] == pytest.approx(0.5, abs=0.05)  # the shared first heading
+    assert np.std(ind, axis=0) == pytest.approx(np.full(7, sigma), rel=0.06)
+    assert abs(np.corrcoef(ind[:, 1], ind[:, 2])[0, 1]) < 0.05
+    with pytest.raises(ValueError, match="yaw_noise_mode 'both'"):
+        compute_guidance(xy, lane, [3.0, 0.0], 0.0, BOUNDS, cfg, yaw_noise_deg=sigma, rng=np.random.default_rng(0),
+                         yaw_noise_mode="both")
+
+
 def test_config_round_trip_and_validation() -> None:
     cfg = GuidanceConfig(spacing=3, count=10, reference="ego")
     assert GuidanceConfig.from_dict(cfg.to_dict()) == cfg and isinstance(cfg.spacing, float)
@@ -317,6 +340,20 @@ def test_command_noise_rate_and_burst_length(p: float) -> None:
     assert len(starts) > 50 and np.all((ends - starts) % 5 == 0)
     bursts = np.concatenate([np.arange(s, e, 5) for s, e in zip(starts, ends, strict=True)])
     assert all(len(set(out[s : s + 5])) == 1 for s in bursts)
+
+
+@pytest.mark.parametrize("p", [0.03, 0.05, 0.1])
+def test_command_noise_frame_share_reading(p: float) -> None:
+    """frame-share: p is the long-run share of wrong-command frames, still in bursts of 5."""
+    noise = CommandNoise(p, np.random.default_rng(4), mode="frame-share")
+    flags = []
+    for _ in range(60000):
+        noise(int(RoadOption.LANEFOLLOW))
+        flags.append(noise.active)
+    assert noise.share == pytest.approx(p) and float(np.mean(flags)) == pytest.approx(p, rel=0.1)
+    assert CommandNoise(p, np.random.default_rng(0)).share == pytest.approx(p * 5 / (p * 5 + 1 - p))
+    with pytest.raises(ValueError, match="command noise mode"):
+        CommandNoise(p, np.random.default_rng(0), mode="share")
 
 
 def test_command_noise_void_counts_as_lanefollow() -> None:

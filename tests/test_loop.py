@@ -38,7 +38,7 @@ def test_collect_train_drive(tmp_path: Path) -> None:
     assert best.is_file()
 
     agent = Agent.from_checkpoint(best)
-    eps = episodes("all", ["new-town-weather"], ["straight"], routes="19", seeds=1)
+    eps = episodes("all", ["new-town-weather"], ["straight"], routes="19", seeds=1, weather_rule="cycle")
     run = run_benchmark(eps, AgentSpec(str(best)), tmp_path / "results", workers=1, progress=False)
     assert run.ran == 1
     rec = run.records[0]

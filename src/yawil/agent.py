@@ -23,7 +23,13 @@ import torch
 
 from yawil.checkpoint import Norm, load_checkpoint, model_from_checkpoint
 from yawil.expert import ExpertConfig
-from yawil.guidance import CommandNoise, GuidanceConfig, compute_guidance
+from yawil.guidance import (
+    COMMAND_NOISE_MODES,
+    YAW_NOISE_MODES,
+    CommandNoise,
+    GuidanceConfig,
+    compute_guidance,
+)
 from yawil.sim.types import DT, Control, Observation, command_index
 from yawil.train import Runtime, resolve_runtime
 
@@ -114,8 +120,9 @@ class StepOutput:
 
 
 class Agent:
-    """Drives with a trained model. Options for the noise experiment (Table II): yaw_noise_deg,
-    command_noise_p, seed (the noise is drawn from a numpy Generator seeded with it)."""
+    """Drives with a trained model. Options for the noise experiment (Table II): yaw_noise_deg and
+    command_noise_p with their readings yaw_noise_mode and command_noise_mode (`yawil.guidance`: compute_guidance,
+    CommandNoise), seed (the noise is drawn from a numpy Generator seeded with it)."""
 
     def __init__(
         self,
@@ -131,9 +138,15 @@ class Agent:
         command_noise_p: float = 0.0,
         seed: int = 0,
         speed_control: bool = False,
+        yaw_noise_mode: str = "raw",
+        command_noise_mode: str = "burst-start",
     ) -> None:
         if yaw_noise_deg < 0.0:
             raise ValueError(f"yaw_noise_deg={yaw_noise_deg!r}: expected >= 0 degrees")
+        if yaw_noise_mode not in YAW_NOISE_MODES:
+            raise ValueError(f"yaw_noise_mode={yaw_noise_mode!r}: expected one of {', '.join(YAW_NOISE_MODES)}")
+        if command_noise_mode not in COMMAND_NOISE_MODES:
+            raise ValueError(f"command_noise_mode={command_noise_mode!r}: expected one of {', '.join(COMMAND_NOISE_MODES)}")
         self.runtime: Runtime = resolve_runtime(device, precision, channels_last)
         self.model = model.to(self.runtime.device).eval()
         if self.runtime.channels_last:
@@ -159,9 +172,11 @@ class Agent:
         self.speed_control: SpeedControl | None = SpeedControl() if speed_control else None
         self.yaw_noise_deg = float(yaw_noise_deg)
         self.command_noise_p = float(command_noise_p)
+        self.yaw_noise_mode = yaw_noise_mode
+        self.command_noise_mode = command_noise_mode
         self.seed = int(seed)
         self._rng = np.random.default_rng(self.seed)
-        self._command_noise = CommandNoise(self.command_noise_p, self._rng) if self.command_noise_p > 0 else None
+        self._command_noise = self._new_command_noise() if self.command_noise_p > 0 else None
         self._hint: int | None = None
         self.last: StepOutput | None = None
         self.checkpoint_path: str | None = None
@@ -193,9 +208,12 @@ class Agent:
             self.seed = int(seed)
             self._rng = np.random.default_rng(self.seed)
             if self._command_noise is not None:
-                self._command_noise = CommandNoise(self.command_noise_p, self._rng)
+                self._command_noise = self._new_command_noise()
         if self._command_noise is not None:
             self._command_noise.reset()
+
+    def _new_command_noise(self) -> CommandNoise:
+        return CommandNoise(self.command_noise_p, self._rng, mode=self.command_noise_mode)
 
     def inputs(self, obs: Observation) -> tuple[dict[str, torch.Tensor | None], np.ndarray | None, int | None]:
         """The network inputs of one observation (batch of 1), plus the raw guidance and command index."""
@@ -222,6 +240,7 @@ class Agent:
                 hint_index=self._hint,
                 yaw_noise_deg=self.yaw_noise_deg,
                 rng=self._rng if self.yaw_noise_deg > 0 else None,
+                yaw_noise_mode=self.yaw_noise_mode,
             )
             guidance_raw = np.asarray(g.get(self.kind), dtype=np.float32)
             guidance = self.norm.guidance(torch.from_numpy(guidance_raw.copy()).to(dev)[None])

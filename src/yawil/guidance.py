@@ -310,13 +310,19 @@ def compute_guidance(
     hint_index: int | None = None,
     yaw_noise_deg: float = 0.0,
     rng: np.random.Generator | None = None,
+    yaw_noise_mode: str = "raw",
 ) -> tuple[Guidance, int]:
     """One frame's guidance: project the ego, resample K+1 points ahead, build the three vectors.
 
     Returns (guidance, index of the route segment under the ego); pass the index back as `hint_index` next
-    frame. With `yaw_noise_deg` > 0 one draw of N(0, sigma^2) degrees per waypoint (Table II) is added to
-    the raw headings of both `yaw` and `sim_yaw`; it needs `rng`.
+    frame. With `yaw_noise_deg` > 0 (Table II; needs `rng`) one draw of N(0, sigma^2) degrees per component,
+    read one of two ways (`YAW_NOISE_MODES`): "raw" adds it to the raw headings of both `yaw` and `sim_yaw`
+    before the reference is subtracted (a noisy receiver's trajectory; with the first heading as reference
+    y[0] stays 0 and the others get sqrt(2) sigma, correlated); "independent" adds it to each component of
+    the finished vectors (exactly sigma on each, independent).
     """
+    if yaw_noise_mode not in YAW_NOISE_MODES:
+        raise ValueError(f"yaw_noise_mode {yaw_noise_mode!r}: choose one of {', '.join(YAW_NOISE_MODES)}")
     if not isinstance(config, GuidanceConfig):
         raise ValueError(f"config must be a GuidanceConfig, got {type(config).__name__}")
     route = _points("route_xy", route_xy)
@@ -346,14 +352,18 @@ def compute_guidance(
     if sigma > 0.0:
         assert rng is not None
         noise = np.deg2rad(rng.normal(0.0, sigma, size=k))
-        lane_k = lane_k + noise
+    raw = noise if yaw_noise_mode == "raw" else None
     ref = yaw0 if config.reference == "ego" else None
-    guidance = Guidance(
-        yaw=yaw_guidance(points, reference_yaw=ref, yaw_noise=noise),
-        xy=xy_guidance(points[:k], box),
-        sim_yaw=sim_yaw_guidance(lane_k, reference_yaw=ref),
-    )
-    return guidance, index
+    yaw = yaw_guidance(points, reference_yaw=ref, yaw_noise=raw)
+    sim_yaw = sim_yaw_guidance(lane_k if raw is None else lane_k + raw, reference_yaw=ref)
+    if noise is not None and raw is None:
+        yaw = wrap_to_pi(yaw + noise).astype(np.float32)
+        sim_yaw = wrap_to_pi(sim_yaw + noise).astype(np.float32)
+    return Guidance(yaw=yaw, xy=xy_guidance(points[:k], box), sim_yaw=sim_yaw), index
+
+
+YAW_NOISE_MODES: tuple[str, ...] = ("raw", "independent")
+COMMAND_NOISE_MODES: tuple[str, ...] = ("burst-start", "frame-share")
 
 
 # ----------------------------------------------------------------------------------------- command noise
@@ -366,22 +376,28 @@ _NOISY_COMMANDS: tuple[int, ...] = (
 
 
 class CommandNoise:
-    """Table II noise for CIL: with probability p per frame, give a wrong command for `length` frames.
+    """Table II noise for CIL: wrong commands in bursts of `length` frames, p read one of two ways.
 
-    A burst starts only when none is running, so bursts never overlap and the long-run share of noisy
-    frames is p*L / (p*L + 1 - p) (about p*L for small p). The wrong command is drawn uniformly from the
-    three others at the start of a burst and redrawn only if the true command changes into it, so the
-    true command is never returned while a burst runs. VOID counts as LANEFOLLOW (as CARLA's agents do).
+    "burst-start" (CIL's sentence read literally): with probability p on each frame without a burst, a burst
+    starts; bursts never overlap, so the long-run share of noisy frames is p*L / (p*L + 1 - p) (13 %, 21 %,
+    36 % at p = 3, 5, 10 % and L = 5). "frame-share": p is that share itself; the start probability q
+    solving q*L / (q*L + 1 - q) = p is used. The wrong command is drawn uniformly from the three others at
+    the start of a burst and redrawn only if the true command changes into it, so the true command is never
+    returned while a burst runs. VOID counts as LANEFOLLOW (as CARLA's agents do).
     """
 
-    def __init__(self, p: float, rng: np.random.Generator, length: int = 5) -> None:
+    def __init__(self, p: float, rng: np.random.Generator, length: int = 5, mode: str = "burst-start") -> None:
         prob = _finite("p", p)
         if not 0.0 <= prob <= 1.0:
             raise ValueError(f"p must be a probability in [0, 1], got {p!r}")
         if not isinstance(rng, np.random.Generator):
             raise ValueError(f"rng must be a numpy Generator, got {rng!r}")
-        self.p = prob
+        if mode not in COMMAND_NOISE_MODES:
+            raise ValueError(f"command noise mode {mode!r}: choose one of {', '.join(COMMAND_NOISE_MODES)}")
         self.length = _positive_int("length", length)
+        n = self.length
+        self.p = prob if mode == "burst-start" else prob / (n * (1.0 - prob) + prob)  # start probability
+        self.share = self.p * n / (self.p * n + 1.0 - self.p)  # long-run share of noisy frames
         self._rng = rng
         self._remaining = 0
         self._wrong = 0

@@ -78,15 +78,17 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     add_choice_help(p, "action", _ROUTE_ACTIONS, _add_route_options)
     p.add_argument("action", nargs="?", default="run", choices=("run", "routes", "validate"),
                    help="run (default): drive the episodes; routes, validate: the route files")
-    p.add_argument("--suite", default=None, help="corl2017 | nocrash | all | square (default nocrash)")
+    p.add_argument("--suite", default=None,
+                   help="corl2017 | nocrash | nocrash-original | all | square (default nocrash; docs/benchmark.md)")
     p.add_argument("--preset", choices=sorted(PRESETS), default=None,
-                   help="a fixed episode set: eval100 = all five tasks x 10 routes x both conditions, seed 0 "
-                        "(100 episodes, for comparing training recipes; docs/training.md)")
+                   help="a fixed episode set: eval100 = all five tasks x 10 routes x both conditions, seed 0, each "
+                        "route in one weather (100 episodes, for comparing training recipes; docs/training.md)")
     p.add_argument(
         "--condition",
         action="append",
         default=None,
-        help="training | new-town-weather (square for the square suite); repeat or comma-separate; default: all of the suite",
+        help="training | new-weather | new-town | new-town-weather (square for the square suite); repeat or "
+        "comma-separate; default: all of the suite's",
     )
     p.add_argument("--agent", default="expert", help="'expert' or a checkpoint path (default expert)")
     p.add_argument("--seeds", type=int, default=None, help="seeds per episode (default: protocol, 5 static / 3 dynamic)")
@@ -95,6 +97,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--label", default=None, help="column name in reports (default: the folder name)")
     p.add_argument("--tasks", default=None, help="comma-separated subset of the suite's tasks")
     p.add_argument("--routes", default=None, help="route ids, as a slice 0:5 or a list 1,4,7")
+    p.add_argument("--weather-rule", default=None, choices=("all", "cycle"),
+                   help="all (default, the protocol): every route in every weather of its condition; "
+                        "cycle: route i in weather i mod n only")
     p.add_argument(
         "--camera",
         action=argparse.BooleanOptionalAction,
@@ -104,6 +109,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--record", action="store_true", help="save a video per episode (camera + bird's-eye) in OUT/videos")
     p.add_argument("--yaw-noise-deg", type=float, default=0.0, help="Gaussian noise sigma on guidance yaw (degrees)")
     p.add_argument("--command-noise-p", type=float, default=0.0, help="probability of a 5-frame wrong command")
+    p.add_argument("--yaw-noise", default="raw", choices=("raw", "independent"),
+                   help="reading of --yaw-noise-deg: raw (default) on the route headings before the reference is "
+                        "subtracted; independent: on each guidance component after it")
+    p.add_argument("--command-noise", default="burst-start", choices=("burst-start", "frame-share"),
+                   help="reading of --command-noise-p: burst-start (default) a 5-frame burst starts with p on each "
+                        "quiet frame; frame-share: a share p of all frames is wrong, in 5-frame bursts")
     p.add_argument("--speed-control", action="store_true",
                    help="learned agents with an aux head: throttle and brake from its predicted target speed")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
@@ -119,7 +130,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
 # Fixed episode sets, each one documented command: the settings it fixes.
 PRESETS: dict[str, dict[str, Any]] = {
-    "eval100": {"suite": "all", "condition": ["training,new-town-weather"], "routes": "0:10", "seeds": 1},
+    "eval100": {"suite": "all", "condition": ["training,new-town-weather"], "routes": "0:10", "seeds": 1,
+                "weather_rule": "cycle"},
 }
 
 
@@ -131,7 +143,7 @@ def apply_preset(args: argparse.Namespace) -> None:
         return
     for key, value in PRESETS[args.preset].items():
         if getattr(args, key) is not None:
-            raise ValueError(f"--preset {args.preset} fixes --{key} ({value}); do not give it too")
+            raise ValueError(f"--preset {args.preset} fixes --{key.replace('_', '-')} ({value}); do not give it too")
         setattr(args, key, value)
 
 
@@ -171,7 +183,8 @@ def _run_suite(args: argparse.Namespace) -> int:
     from yawil.bench.runner import AgentSpec, run_benchmark
     from yawil.bench.suites import episodes
 
-    spec = AgentSpec(args.agent, args.yaw_noise_deg, args.command_noise_p, args.speed_control).validate()
+    spec = AgentSpec(args.agent, args.yaw_noise_deg, args.command_noise_p, args.speed_control,
+                     args.yaw_noise, args.command_noise).validate()
     factory = None
     if args.backend != "embedded":
         if args.workers != 1:
@@ -186,6 +199,7 @@ def _run_suite(args: argparse.Namespace) -> int:
             routes=args.routes,
             seeds=args.seeds,
             routes_folder=Path(args.routes_dir) if args.routes_dir else None,
+            weather_rule=args.weather_rule or "all",
         )
     out = Path(args.out) if args.out else Path("results") / (
         "expert" if spec.is_expert else Path(args.agent).resolve().parent.name
@@ -250,6 +264,7 @@ def _carla_episodes(args: argparse.Namespace) -> tuple[list[Any], Callable[[], A
                 routes=args.routes,
                 seeds=args.seeds,
                 routes_folder=folders[get_condition(name).town],
+                weather_rule=args.weather_rule or "all",
             )
     except CarlaSetupError as err:
         world.close()

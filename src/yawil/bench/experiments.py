@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Any
 
 from yawil.bench.metrics import mean_std
-from yawil.bench.records import iter_results, write_json_atomic
+from yawil.bench.records import episode_key, iter_results, write_json_atomic
 from yawil.stages import read_marker, write_marker
 
 METHODS: tuple[tuple[str, str], ...] = (
@@ -186,17 +186,19 @@ def train_all(root: Path, data: dict[str, Path], jobs: Sequence[tuple[str, str]]
 
 
 def drive(ckpt: Path, results: Path, p: Profile, seeds: int, log: Log, yaw_noise_deg: float = 0.0,
-          command_noise_p: float = 0.0) -> list[dict[str, Any]]:
+          command_noise_p: float = 0.0, yaw_noise_mode: str = "raw",
+          command_noise_mode: str = "burst-start") -> list[dict[str, Any]]:
     """Drive the square tasks with one agent (resumable); returns its records."""
     from yawil.bench.runner import AgentSpec, run_benchmark
     from yawil.bench.suites import episodes
 
     eps = episodes("square", routes=p.routes, seeds=seeds)
-    spec = AgentSpec(str(ckpt), yaw_noise_deg, command_noise_p)
+    spec = AgentSpec(str(ckpt), yaw_noise_deg, command_noise_p, yaw_noise_mode=yaw_noise_mode,
+                     command_noise_mode=command_noise_mode)
     summary = run_benchmark(eps, spec, results, workers=p.drive_workers, progress=False)
     log(f"drive: {results.name}: {summary.ran} run, {summary.skipped} resumed")
     keys = {e.key for e in eps}
-    return [r for r in iter_results(results) if f"{r['task']}/{r['condition']}/{r['route_id']}/{r['seed']}" in keys]
+    return [r for r in iter_results(results) if episode_key(r) in keys]
 
 
 def _n_tasks(p: Profile) -> int:
@@ -258,9 +260,30 @@ def noise_candidates(root: Path, models: Sequence[str] | None = None) -> tuple[l
     return [("full", m) for m in sorted(wanted)], f"no model passed all {n} tasks: full-dataset models used instead"
 
 
+_NOISE_TEXT: dict[str, str] = {
+    "raw": "Yaw noise: Gaussian on each waypoint's raw heading every frame, before the reference is subtracted.",
+    "independent": "Yaw noise: Gaussian on each component of the guidance vector every frame, after the "
+                   "reference is subtracted.",
+    "burst-start": "CIL: a wrong command for 5 consecutive frames, started with probability p on each frame "
+                   "without a burst.",
+    "frame-share": "CIL: a share p of the frames carry a wrong command, in bursts of 5 consecutive frames.",
+}
+
+
 def noise_experiment(out: str | Path, profile: str = "quick", models: Sequence[str] | None = None,
-                     log: Log = print, seeds: int | None = None) -> Path:
-    """Table II from the Table I models; returns the path of table2.md. `seeds` overrides the profile's."""
+                     log: Log = print, seeds: int | None = None, yaw_noise_mode: str = "raw",
+                     command_noise_mode: str = "burst-start") -> Path:
+    """Table II from the Table I models; returns the path of table2.md. `seeds` overrides the profile's.
+
+    The readings of the two noises (`yawil.guidance`): the defaults raw / burst-start write table2.md and
+    noise/<tag>; any other pair writes table2_<yaw>_<command>.md and noise/<tag>_<reading>, beside them.
+    """
+    from yawil.guidance import COMMAND_NOISE_MODES, YAW_NOISE_MODES
+
+    if yaw_noise_mode not in YAW_NOISE_MODES or command_noise_mode not in COMMAND_NOISE_MODES:
+        raise ValueError(f"noise readings {yaw_noise_mode!r} / {command_noise_mode!r}: expected one of "
+                         f"{', '.join(YAW_NOISE_MODES)} / {', '.join(COMMAND_NOISE_MODES)}")
+    default = (yaw_noise_mode, command_noise_mode) == ("raw", "burst-start")
     p = get_profile(profile)
     if seeds is not None:
         if seeds < 1:
@@ -283,11 +306,13 @@ def noise_experiment(out: str | Path, profile: str = "quick", models: Sequence[s
             log(f"noise: {model} takes XY coordinates, yaw noise does not apply; skipped")
             continue
         cells = []
+        reading = yaw_noise_mode if kind == "yaw" else command_noise_mode
         for level in levels:
-            tag = f"{dataset}-{model}-{kind}{level:g}"
+            tag = f"{dataset}-{model}-{kind}{level:g}" + ("" if reading in ("raw", "burst-start") else f"_{reading}")
             recs = drive(ckpt, root / "noise" / tag, p, p.noise_seeds, log,
                          yaw_noise_deg=level if kind == "yaw" else 0.0,
-                         command_noise_p=level if kind == "command" else 0.0)
+                         command_noise_p=level if kind == "command" else 0.0,
+                         yaw_noise_mode=yaw_noise_mode, command_noise_mode=command_noise_mode)
             per_seed = [sum(bool(r["success"]) for r in recs if r["seed"] == s) for s in range(p.noise_seeds)]
             st = mean_std(per_seed)
             cells.append(st.format(2))
@@ -299,10 +324,11 @@ def noise_experiment(out: str | Path, profile: str = "quick", models: Sequence[s
     lines = ["### Table II: number of successes with noise", "",
              "| Model | Noise | low | middle | high |", "|---|---|---|---|---|", *rows, "",
              f"Mean ± population std over {p.noise_seeds} seeds of the successes out of {n} tasks; {note}. "
-             "Yaw noise: Gaussian on each waypoint's raw yaw every frame; CIL: a wrong command for 5 "
-             "consecutive frames, started with probability p per frame."]
-    write_json_atomic(root / "table2.json", data)
-    table = root / "table2.md"
+             + _NOISE_TEXT[yaw_noise_mode] + " " + _NOISE_TEXT[command_noise_mode]]
+    data["readings"] = {"yaw": yaw_noise_mode, "command": command_noise_mode}
+    stem = "table2" if default else f"table2_{yaw_noise_mode}_{command_noise_mode}"
+    write_json_atomic(root / f"{stem}.json", data)
+    table = root / f"{stem}.md"
     table.write_text("\n".join(lines) + "\n", encoding="utf-8")
     log(table.read_text(encoding="utf-8"))
     return table

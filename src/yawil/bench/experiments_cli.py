@@ -32,6 +32,12 @@ def _add_options(p: argparse.ArgumentParser, which: str | None) -> None:
                        help=tag("noise") + "seeds per noise level instead of the profile's (the paper's 5)")
         p.add_argument("--models", default=None,
                        help=tag("noise") + "comma-separated methods to test instead of the passing ones")
+        p.add_argument("--yaw-noise", default="raw", choices=("raw", "independent"),
+                       help=tag("noise") + "reading of the yaw noise: raw (default) on the route headings before "
+                       "the reference is subtracted; independent: on each guidance component after it")
+        p.add_argument("--command-noise", default="burst-start", choices=("burst-start", "frame-share"),
+                       help=tag("noise") + "reading of p: burst-start (default) a 5-frame burst starts with p on "
+                       "each quiet frame; frame-share: a share p of the frames is wrong")
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:  # type: ignore[type-arg]
@@ -57,7 +63,8 @@ def run(args: argparse.Namespace) -> int:
             square_experiment(args.out, args.profile, seed=args.seed)
         else:
             models = [m.strip() for m in args.models.split(",")] if args.models else None
-            noise_experiment(args.out, args.profile, models=models, seeds=args.noise_seeds)
+            noise_experiment(args.out, args.profile, models=models, seeds=args.noise_seeds,
+                             yaw_noise_mode=args.yaw_noise, command_noise_mode=args.command_noise)
     except ValueError as err:
         raise SystemExit(f"yawil experiment: {err}") from None
     return 0

@@ -28,18 +28,33 @@ FAILURE_REASONS: tuple[str, ...] = (
     "collision_pedestrian",
     "collision_static",
     "timeout",
+    "blocked",
 )
+# An agent that makes no progress along its route for this long has stopped for good: the episode ends as
+# `blocked` (the CARLA leaderboard's "agent blocked") instead of burning the rest of its timeout. The expert's
+# longest wait (queues at red lights in dense traffic) must stay well below it: docs/benchmark.md gives the
+# measured figure (`max_stall_s` of every record).
+BLOCKED_S = 90.0
+PROGRESS_M = 1.0  # route progress (metres along the route) that counts as moving on
 TRAJECTORY_EVERY = 5  # store one (x, y) every 5 steps (0.5 s) for the report's trajectory plots
 ROUTE_EVERY_M = 5  # store one route waypoint every ~5 m (route waypoints are ~1 m apart)
 
 
-def timeout_for(length_m: float) -> float:
-    """NoCrash's time budget for a route of `length_m` metres: 5 km/h average plus 20 s."""
-    from yawil.sim.criteria import nocrash_timeout  # the one formula, also the worlds' default
+TIMEOUT_RULES: dict[str, str] = {
+    "corl2017": "10 km/h average plus 10 s",
+    "nocrash": "5 km/h average plus 20 s",
+}
+
+
+def timeout_for(length_m: float, rule: str = "nocrash") -> float:
+    """The time budget of a route of `length_m` metres under a suite's rule (`TIMEOUT_RULES`)."""
+    from yawil.sim.criteria import corl2017_timeout, nocrash_timeout  # the formulas, also the worlds' default
 
     if not math.isfinite(length_m) or length_m < 0:
         raise ValueError(f"route length must be a finite number >= 0 metres, got {length_m!r}")
-    return nocrash_timeout(length_m)
+    if rule not in TIMEOUT_RULES:
+        raise ValueError(f"unknown timeout rule {rule!r}; choose one of {', '.join(TIMEOUT_RULES)}")
+    return corl2017_timeout(length_m) if rule == "corl2017" else nocrash_timeout(length_m)
 
 
 def collision_reason(other_type: str | None) -> str:
@@ -62,6 +77,7 @@ class EpisodeTracker:
     goal_xy: tuple[float, float]
     timeout_s: float
     trajectory_every: int = TRAJECTORY_EVERY
+    blocked_s: float = BLOCKED_S
     success: bool = False
     reason: str | None = None
     finished: bool = False
@@ -75,7 +91,11 @@ class EpisodeTracker:
     collisions: list[dict[str, Any]] = field(default_factory=list)
     trajectory: list[list[float]] = field(default_factory=list)
     final_distance_m: float = math.inf
+    max_stall_s: float = 0.0  # longest time without PROGRESS_M of route progress
     _goal: GoalCriterion | None = field(default=None, init=False, repr=False, compare=False)
+    _best_index: int = field(default=0, init=False, repr=False, compare=False)
+    _progress_time: float = field(default=0.0, init=False, repr=False, compare=False)
+    _spacing: float = field(default=1.0, init=False, repr=False, compare=False)
 
     def start(self, obs: Observation) -> None:
         """Record the first observation (after reset) without judging it."""
@@ -88,6 +108,9 @@ class EpisodeTracker:
                 f"waypoint {end}; the goal must be the route's end"
             )
         self._goal = GoalCriterion(obs.route.xy)  # the worlds' own rule, its route table built once
+        self._best_index = int(obs.route_index)
+        n = len(obs.route.xy)
+        self._spacing = float(obs.route.length) / (n - 1) if n > 1 and obs.route.length > 0 else 1.0
 
     def _goal_distance(self, obs: Observation) -> float:
         return math.hypot(obs.pose.x - self.goal_xy[0], obs.pose.y - self.goal_xy[1])
@@ -129,12 +152,19 @@ class EpisodeTracker:
         if self.steps % self.trajectory_every == 0:
             self.trajectory.append([round(obs.pose.x, 2), round(obs.pose.y, 2)])
         self.final_distance_m = self._goal_distance(obs)
+        if (int(obs.route_index) - self._best_index) * self._spacing >= PROGRESS_M - 1e-9:
+            self._best_index = int(obs.route_index)
+            self._progress_time = self.time_s
+        stall = self.time_s - self._progress_time
+        self.max_stall_s = max(self.max_stall_s, stall)
         if self.collisions:
             self.reason = collision_reason(self.collisions[0]["type"])
         elif self._goal.update(obs.time, obs.pose.x, obs.pose.y, obs.route_index):
             self.success = True
         elif self.time_s >= self.timeout_s - 1e-9:
             self.reason = "timeout"
+        elif stall >= self.blocked_s - 1e-9:
+            self.reason = "blocked"
         elif obs.done:
             # The world stopped on its own timeout before ours (its goal rule is ours, judged above).
             self.reason = "timeout"
@@ -161,6 +191,7 @@ class EpisodeTracker:
             "lights_passed": self.lights_passed,
             "collisions": self.collisions,
             "final_distance_m": round(self.final_distance_m, 3),
+            "max_stall_s": round(self.max_stall_s, 2),
             "trajectory": self.trajectory,
         }
 

@@ -16,11 +16,19 @@ from typing import Any, TextIO
 
 EPISODES_FILE = "episodes.jsonl"
 RUN_FILE = "run.json"
-KEY_FIELDS: tuple[str, ...] = ("task", "condition", "route_id", "seed")
+KEY_FIELDS: tuple[str, ...] = ("task", "condition", "weather", "route_id", "seed")
+# Version of the episode protocol, written into every record and run.json. 2 (2026-12-02): every route in every
+# weather (the weather joined the key), each suite's own timeout, the `blocked` end. Results of another version
+# are refused, by `yawil bench` on resume and by `yawil report` (docs/benchmark.md, "Protocol versions"): their
+# figures do not mean the same thing, and a report that mixed them would not say so.
+PROTOCOL = 2
+_OLD_PROTOCOL = ("written under benchmark protocol {v} (each route in one weather, one timeout for every task, no "
+                 "'blocked' end); this yawil drives and reports protocol " + str(PROTOCOL) +
+                 " (docs/benchmark.md, 'Protocol versions'): drive it again into a new folder")
 
 
 def episode_key(rec: Mapping[str, Any]) -> str:
-    """Identity of an episode: task, condition, route and seed (the agent is fixed per results folder)."""
+    """Identity of an episode: task, condition, weather, route and seed (the agent is fixed per results folder)."""
     try:
         return "/".join(str(rec[k]) for k in KEY_FIELDS)
     except KeyError as err:
@@ -123,7 +131,8 @@ def write_json_atomic(path: str | Path, obj: Any) -> None:
 
 
 def check_run_info(folder: str | Path, info: Mapping[str, Any], label_given: bool = False) -> None:
-    """Store the agent's identity with the results, or check that a resumed run uses the same agent.
+    """Store the agent's identity (and the protocol version) with the results, or check that a resumed run
+    uses the same agent under the same protocol.
 
     Mixing two agents' episodes in one folder would make its figures meaningless, so it is an error: the
     same path, options and checkpoint content (`agent_sha256`; folders written before it was recorded are
@@ -135,6 +144,8 @@ def check_run_info(folder: str | Path, info: Mapping[str, Any], label_given: boo
             old = json.loads(path.read_text(encoding="utf-8"))
         except ValueError as err:
             raise ValueError(f"{path}: not valid JSON ({err})") from None
+        if old.get("protocol", 1) != PROTOCOL:
+            raise ValueError(f"{path}: results {_OLD_PROTOCOL.format(v=old.get('protocol', 1))}")
         keys = ["agent", "agent_options"] + (["label"] if label_given else [])
         for key in keys:
             if old.get(key) != info.get(key):
@@ -149,7 +160,7 @@ def check_run_info(folder: str | Path, info: Mapping[str, Any], label_given: boo
                 "use another --out folder"
             )
         return
-    write_json_atomic(path, dict(info))
+    write_json_atomic(path, {**info, "protocol": PROTOCOL})
 
 
 # Fields the report computes with, and what each must hold: a hand-edited "success": "yes" or a negative
@@ -157,6 +168,7 @@ def check_run_info(folder: str | Path, info: Mapping[str, Any], label_given: boo
 _REPORT_FIELDS: dict[str, tuple[str, Any]] = {
     "task": ("a task name", lambda v: isinstance(v, str) and bool(v)),
     "condition": ("a condition name", lambda v: isinstance(v, str) and bool(v)),
+    "weather": ("a weather name", lambda v: isinstance(v, str) and bool(v)),
     "route_id": ("an integer >= 0", lambda v: _is_int(v) and v >= 0),
     "seed": ("an integer >= 0", lambda v: _is_int(v) and v >= 0),
     "success": ("true or false", lambda v: isinstance(v, bool)),
@@ -175,6 +187,8 @@ def _is_num(v: Any) -> bool:
 
 def check_record(rec: Mapping[str, Any], where: str) -> None:
     """ValueError naming the record and field when a record cannot be counted as written."""
+    if rec.get("protocol", 1) != PROTOCOL:
+        raise ValueError(f"{where}: {_OLD_PROTOCOL.format(v=rec.get('protocol', 1))}")
     for name, (want, ok) in _REPORT_FIELDS.items():
         if name not in rec:
             raise ValueError(f"{where}: field {name!r} is missing (expected {want})")

@@ -25,7 +25,7 @@ from typing import Any
 
 from yawil.bench.metrics import FAILURE_REASONS, Stat, failure_counts, task_success, task_violations
 from yawil.bench.records import RUN_FILE, iter_results
-from yawil.bench.suites import CONDITIONS, TABLE_TASKS, TASKS
+from yawil.bench.suites import CONDITIONS, TASKS
 from yawil.fileio import write_atomic
 
 
@@ -64,9 +64,9 @@ def _unique_labels(sets: Sequence[ResultSet]) -> None:
 
 
 def _present(sets: Sequence[ResultSet]) -> tuple[list[str], list[str]]:
-    """Conditions and tasks that have at least one record, in the paper's order."""
+    """Conditions and tasks that have at least one record, in the order of CONDITIONS and TASKS (the paper's first)."""
     conds = [c for c in CONDITIONS if any(r["condition"] == c for rs in sets for r in rs.records)]
-    tasks = [t for t in (*TABLE_TASKS, "square") if any(r["task"] == t for rs in sets for r in rs.records)]
+    tasks = [t for t in TASKS if any(r["task"] == t for rs in sets for r in rs.records)]
     return conds, tasks
 
 

@@ -22,7 +22,7 @@ from pathlib import Path
 from typing import Any, Protocol
 
 from yawil.bench.metrics import EpisodeTracker, subsample_route
-from yawil.bench.records import EpisodeLog, check_run_info, episode_key
+from yawil.bench.records import PROTOCOL, EpisodeLog, check_run_info, episode_key
 from yawil.bench.suites import Episode
 from yawil.locking import folder_lock
 from yawil.sim.types import Control, Observation, World
@@ -44,13 +44,19 @@ class AgentSpec:
     yaw_noise_deg: float = 0.0
     command_noise_p: float = 0.0
     speed_control: bool = False  # drive throttle and brake from the aux head's target speed (Agent's option)
+    yaw_noise_mode: str = "raw"  # readings of the two noises (yawil.guidance.YAW_NOISE_MODES, COMMAND_NOISE_MODES)
+    command_noise_mode: str = "burst-start"
 
     @property
     def is_expert(self) -> bool:
         return self.agent == EXPERT
 
-    def options(self) -> dict[str, float]:
-        opts = {"yaw_noise_deg": self.yaw_noise_deg, "command_noise_p": self.command_noise_p}
+    def options(self) -> dict[str, Any]:
+        opts: dict[str, Any] = {"yaw_noise_deg": self.yaw_noise_deg, "command_noise_p": self.command_noise_p}
+        if self.yaw_noise_deg:  # a reading only where its noise is on: noiseless runs of either are one run
+            opts["yaw_noise_mode"] = self.yaw_noise_mode
+        if self.command_noise_p:
+            opts["command_noise_mode"] = self.command_noise_mode
         if self.speed_control:  # only when set, so the records of earlier runs still match
             opts["speed_control"] = True
         return opts
@@ -60,6 +66,11 @@ class AgentSpec:
             raise ValueError(f"--agent {self.agent!r}: expected 'expert' or the path of a checkpoint file")
         if self.is_expert and (self.yaw_noise_deg or self.command_noise_p or self.speed_control):
             raise ValueError("noise and speed-control options apply to learned agents, not to the expert")
+        from yawil.guidance import COMMAND_NOISE_MODES, YAW_NOISE_MODES
+
+        if self.yaw_noise_mode not in YAW_NOISE_MODES or self.command_noise_mode not in COMMAND_NOISE_MODES:
+            raise ValueError(f"--yaw-noise {self.yaw_noise_mode!r} / --command-noise {self.command_noise_mode!r}: "
+                             f"expected one of {', '.join(YAW_NOISE_MODES)} / {', '.join(COMMAND_NOISE_MODES)}")
         if self.yaw_noise_deg < 0 or not 0 <= self.command_noise_p <= 1:
             raise ValueError(
                 f"yaw_noise_deg must be >= 0 and command_noise_p in [0, 1], got {self.yaw_noise_deg}, {self.command_noise_p}"
@@ -94,7 +105,8 @@ class AgentSpec:
 
         return Agent.from_checkpoint(  # type: ignore[no-any-return]
             self.agent, yaw_noise_deg=self.yaw_noise_deg, command_noise_p=self.command_noise_p, seed=seed,
-            speed_control=self.speed_control,
+            speed_control=self.speed_control, yaw_noise_mode=self.yaw_noise_mode,
+            command_noise_mode=self.command_noise_mode,
         )
 
 
@@ -180,6 +192,7 @@ class EpisodeDriver:
         else:
             video = None
         rec: dict[str, Any] = {
+            "protocol": PROTOCOL,
             "suite": ep.suite,
             "task": ep.task,
             "condition": ep.condition,

@@ -1,11 +1,17 @@
 """Suites, tasks, conditions, the committed route files, and the list of episodes a run is made of.
 
-The protocol (docs/benchmark.md) in data form:
+The protocol (docs/benchmark.md; its version is `yawil.bench.records.PROTOCOL`) in data form:
 - tasks: Straight, One Turn, Navigation (Empty) are static (no traffic) and reported as the best of 5 seeds;
   Nav. (Regular) (30 vehicles, 10 pedestrians) and Nav. (Dense) (50, 30) are dynamic, mean +- std over 3.
-  NoCrash's "Empty" *is* CoRL2017's Navigation: same routes, same episodes, stored once.
-- conditions: `training` = town01 x the 4 training weathers; `new-town-weather` = town02 x the 2 test ones.
-  Route i of a task is driven in weather i mod n of its condition (so each weather gets 25/n routes).
+  Each task carries its suite's time budget: CoRL2017's tasks 10 km/h + 10 s, NoCrash's 5 km/h + 20 s.
+  NoCrash's "Empty" drives CoRL2017's Navigation routes under NoCrash's budget: a task of its own (stored
+  apart), so that each suite's figures are judged by its own rule.
+- `nocrash-original` and CoRL2017's Navigation Dynamic: the published traffic densities per town.
+- conditions: `training` = town01 x the 4 training weathers; `new-town-weather` = town02 x the 2 test ones;
+  `new-weather` and `new-town` complete NoCrash's four.
+  Every route is driven in every weather of its condition (CoRL2017 and NoCrash do so: 100 episodes per
+  task and seed in the training condition, 50 in the new town). The weather episodes of one route and seed
+  share their world seed: weather is their only difference.
 - `square`: the 32 turning tasks of the paper's Table I on the square map, in ClearNoon.
 Route files live in `yawil/bench/routes/<town>.json`, generated once (`yawil bench routes`) and committed.
 """
@@ -19,7 +25,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from yawil.bench.metrics import timeout_for
+from yawil.bench.metrics import TIMEOUT_RULES, timeout_for
 from yawil.sim.types import Pose, Scenario
 from yawil.sim.weather import TEST_WEATHERS, TRAIN_WEATHERS, get_weather
 
@@ -28,6 +34,7 @@ _CARLA_ROUTES_DIR = Path(__file__).parent.parent / "sim" / "carla" / "routes"  #
 ROUTE_FORMAT = "yawil-routes/1"
 ROUTES_PER_TASK = 25
 SQUARE_TASKS = 32
+WEATHER_RULES = ("all", "cycle")  # all: every route in every weather (the protocol); cycle: route i in weather i mod n
 
 
 @dataclass(frozen=True)
@@ -38,10 +45,19 @@ class Task:
     vehicles: int
     pedestrians: int
     dynamic: bool  # dynamic tasks: mean +- std over seeds; static: best of seeds
+    timeout: str = "nocrash"  # the time budget's rule, one of metrics.TIMEOUT_RULES (the suite's own)
+    per_town: tuple[tuple[str, int, int], ...] = ()  # (town, vehicles, pedestrians) where the town differs
 
     @property
     def default_seeds(self) -> int:
         return 3 if self.dynamic else 5
+
+    def traffic(self, town: str) -> tuple[int, int]:
+        """Vehicles and pedestrians of this task in `town` (published suites set them per town)."""
+        for name, vehicles, pedestrians in self.per_town:
+            if name == town:
+                return vehicles, pedestrians
+        return self.vehicles, self.pedestrians
 
 
 @dataclass(frozen=True)
@@ -52,51 +68,69 @@ class Condition:
     weathers: tuple[str, ...]
 
     def weather_for(self, route_id: int) -> str:
-        """Route i is driven in weather i mod n (documented assignment)."""
+        """The weather of route i under the `cycle` rule (i mod n): the preset eval100's one weather per route."""
         return self.weathers[route_id % len(self.weathers)]
+
+    def weathers_for(self, route_id: int, rule: str = "all") -> tuple[str, ...]:
+        """The weathers route i is driven in: all of the condition's (the protocol), or one (`cycle`)."""
+        if rule not in WEATHER_RULES:
+            raise ValueError(f"unknown weather rule {rule!r}; choose one of {', '.join(WEATHER_RULES)}")
+        return self.weathers if rule == "all" else (self.weather_for(route_id),)
 
 
 TASKS: dict[str, Task] = {
     t.name: t
     for t in (
-        Task("straight", "Straight", "straight", 0, 0, False),
-        Task("one_turn", "One Turn", "one_turn", 0, 0, False),
-        Task("navigation", "Navigation (Empty)", "navigation", 0, 0, False),
-        Task("regular", "Nav. (Regular)", "navigation", 30, 10, True),
-        Task("dense", "Nav. (Dense)", "navigation", 50, 30, True),
-        Task("square", "Square turning tasks", "square", 0, 0, False),
+        Task("straight", "Straight", "straight", 0, 0, False, "corl2017"),
+        Task("one_turn", "One Turn", "one_turn", 0, 0, False, "corl2017"),
+        Task("navigation", "Navigation (Empty)", "navigation", 0, 0, False, "corl2017"),
+        Task("nav_dynamic", "Nav. Dynamic (CoRL2017)", "navigation", 20, 50, True, "corl2017",
+             (("town01", 20, 50), ("town02", 15, 50))),
+        Task("empty", "Empty (NoCrash)", "navigation", 0, 0, False, "nocrash"),
+        Task("regular", "Nav. (Regular)", "navigation", 30, 10, True, "nocrash"),
+        Task("dense", "Nav. (Dense)", "navigation", 50, 30, True, "nocrash"),
+        Task("nocrash_regular", "Regular (NoCrash as published)", "navigation", 20, 50, True, "nocrash",
+             (("town01", 20, 50), ("town02", 15, 50))),
+        Task("nocrash_dense", "Dense (NoCrash as published)", "navigation", 100, 250, True, "nocrash",
+             (("town01", 100, 250), ("town02", 70, 150))),
+        Task("square", "Square turning tasks", "square", 0, 0, False, "nocrash"),
     )
 }
-TASK_ALIASES: dict[str, str] = {"empty": "navigation", "nav": "navigation", "one-turn": "one_turn"}
+TASK_ALIASES: dict[str, str] = {"nav": "navigation", "one-turn": "one_turn", "nav-dynamic": "nav_dynamic"}
 
 CONDITIONS: dict[str, Condition] = {
     c.name: c
     for c in (
         Condition("training", "Training Conditions", "town01", TRAIN_WEATHERS),
+        Condition("new-weather", "New Weather", "town01", TEST_WEATHERS),
+        Condition("new-town", "New Town02", "town02", TRAIN_WEATHERS),
         Condition("new-town-weather", "New Town02 & Weather", "town02", TEST_WEATHERS),
         Condition("square", "Square scene", "square", ("ClearNoon",)),
     )
 }
 
 SUITES: dict[str, tuple[str, ...]] = {
-    "corl2017": ("straight", "one_turn", "navigation"),
-    "nocrash": ("navigation", "regular", "dense"),
+    "corl2017": ("straight", "one_turn", "navigation", "nav_dynamic"),
+    "nocrash": ("empty", "regular", "dense"),
+    "nocrash-original": ("empty", "nocrash_regular", "nocrash_dense"),
     "all": ("straight", "one_turn", "navigation", "regular", "dense"),
     "square": ("square",),
 }
 SUITE_CONDITIONS: dict[str, tuple[str, ...]] = {
     "corl2017": ("training", "new-town-weather"),
     "nocrash": ("training", "new-town-weather"),
+    "nocrash-original": ("training", "new-weather", "new-town", "new-town-weather"),
     "all": ("training", "new-town-weather"),
     "square": ("square",),
 }
 TABLE_TASKS: tuple[str, ...] = SUITES["all"]  # rows of Table III, in the paper's order
+assert all(t.timeout in TIMEOUT_RULES for t in TASKS.values())
 
 
 def get_task(name: str) -> Task:
     key = TASK_ALIASES.get(name, name)
     if key not in TASKS:
-        raise ValueError(f"unknown task {name!r}; choose one of {', '.join(TASKS)} (or alias 'empty')")
+        raise ValueError(f"unknown task {name!r}; choose one of {', '.join(TASKS)}")
     return TASKS[key]
 
 
@@ -258,16 +292,18 @@ class Episode:
 
     @property
     def key(self) -> str:
-        return f"{self.task}/{self.condition}/{self.route.id}/{self.seed}"
+        """task/condition/weather/route/seed: `yawil.bench.records.episode_key` of its record."""
+        return f"{self.task}/{self.condition}/{self.weather}/{self.route.id}/{self.seed}"
 
     @property
     def world_seed(self) -> int:
-        """Seed of the world and agent: 1000 * seed + route id (stable, readable, distinct per episode)."""
+        """Seed of the world and agent: 1000 * seed + route id (stable, readable). The weathers of one route
+        and seed share it, so traffic and agent noise are the same and weather is the only difference."""
         return 1000 * self.seed + self.route.id
 
     @property
     def timeout_s(self) -> float:
-        return timeout_for(self.route.length_m)
+        return timeout_for(self.route.length_m, TASKS[self.task].timeout)
 
     def scenario(self, camera: bool) -> Scenario:
         return Scenario(
@@ -313,11 +349,16 @@ def episodes(
     routes: str | None = None,
     seeds: int | None = None,
     routes_folder: Path | None = None,
+    weather_rule: str = "all",
 ) -> list[Episode]:
-    """Every episode of a run, in a fixed order (condition, task, seed, route); no key repeats.
+    """Every episode of a run, in a fixed order (condition, task, seed, route, weather); no key repeats.
 
     `seeds` None gives the protocol's count per task (5 static, 3 dynamic); a number overrides it for all.
+    `weather_rule` "all" drives every route in every weather of its condition (the protocol); "cycle" route i
+    in weather i mod n only (a quarter of the episodes: the preset eval100's comparisons of recipes).
     """
+    if weather_rule not in WEATHER_RULES:
+        raise ValueError(f"unknown weather rule {weather_rule!r}; choose one of {', '.join(WEATHER_RULES)}")
     suite_tasks = get_suite(suite)
     conds = list(conditions) if conditions else list(SUITE_CONDITIONS[suite])
     names = [get_task(t).name for t in tasks] if tasks else list(suite_tasks)
@@ -341,10 +382,12 @@ def episodes(
                 raise ValueError(f"route file of {cond.town} has no {task.routes!r} list")
             specs = lists[task.routes]
             ids = parse_range(routes, len(specs))
+            vehicles, pedestrians = task.traffic(cond.town)
             for seed in range(seeds if seeds is not None else task.default_seeds):
                 for rid in ids:
-                    ep = Episode(suite, tname, cname, specs[rid], seed, cond.town, cond.weather_for(rid), task.vehicles, task.pedestrians)
-                    if ep.key not in seen:
-                        seen.add(ep.key)
-                        out.append(ep)
+                    for weather in cond.weathers_for(rid, weather_rule):
+                        ep = Episode(suite, tname, cname, specs[rid], seed, cond.town, weather, vehicles, pedestrians)
+                        if ep.key not in seen:
+                            seen.add(ep.key)
+                            out.append(ep)
     return out

@@ -20,6 +20,12 @@ def nocrash_timeout(route_length: float) -> float:
     return route_length / 1000.0 / 5.0 * 3600.0 + 20.0
 
 
+def corl2017_timeout(route_length: float) -> float:
+    """CoRL2017's time budget: (d/1000)/10*3600 + 10 s (10 km/h average plus 10 s; coiltraine's
+    driving-benchmarks `_calculate_time_out`). Always shorter than NoCrash's for the same route."""
+    return route_length / 1000.0 / 10.0 * 3600.0 + 10.0
+
+
 def boxes_overlap(ego: Sequence[float], boxes: np.ndarray) -> np.ndarray:
     """Separating-axis test of one oriented box (x, y, yaw, length, width) against K boxes (K, 5)."""
     boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 5)

@@ -177,7 +177,8 @@ def run_demo(out: Path, budget: DemoBudget, seed: int = 0) -> Path:
             (budget.baseline, AgentSpec(str(base_dir / "best.pt")), budget.tasks),
             ("yilratt", AgentSpec(str(run_dir / "best.pt")), budget.tasks),
         ):
-            eps = episodes("all", conds, list(tasks), routes=budget.routes, seeds=budget.seeds)
+            # a subset of the protocol: route i in weather i mod n (`weather_rule` cycle), like the preset eval100
+            eps = episodes("all", conds, list(tasks), routes=budget.routes, seeds=budget.seeds, weather_rule="cycle")
             _say(f"4/6 benchmark: {label} on {len(eps)} episodes ({', '.join(tasks)}; routes {budget.routes})")
             run_benchmark(eps, spec, out / "results" / label, workers=budget.bench_workers, label=label)
         info = {"seconds": time.perf_counter() - t}

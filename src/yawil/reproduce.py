@@ -38,11 +38,12 @@ class ReproduceProfile:
     seeds: int | None  # None: the protocol's (5 static, 3 dynamic)
     bench_workers: int
     experiments_profile: str  # profile of `yawil experiment square|noise`
+    weather_rule: str = "all"  # the protocol's every route in every weather; quick: route i in weather i mod n
 
 
 PROFILES: dict[str, ReproduceProfile] = {
     "quick": ReproduceProfile("quick", frames=20_000, collect_workers=2, epochs=3, batch_size=128, max_minutes=8.0,
-                              routes="0:5", seeds=1, bench_workers=2, experiments_profile="quick"),
+                              routes="0:5", seeds=1, bench_workers=2, experiments_profile="quick", weather_rule="cycle"),
     "paper": ReproduceProfile("paper", frames=200_000, collect_workers=2, epochs=100, batch_size=512, max_minutes=None,
                               routes=None, seeds=None, bench_workers=2, experiments_profile="paper"),
 }  # fmt: skip
@@ -123,7 +124,7 @@ def stages(out: Path, p: ReproduceProfile, pretrained: str | None) -> list[tuple
             from yawil.bench.runner import AgentSpec, run_benchmark
             from yawil.bench.suites import episodes
 
-            eps = episodes("all", routes=p.routes, seeds=p.seeds)
+            eps = episodes("all", routes=p.routes, seeds=p.seeds, weather_rule=p.weather_rule)
             path = agent if agent == "expert" else str(out / "runs" / agent / "best.pt")
             s = run_benchmark(eps, AgentSpec(path), out / "results" / label, workers=p.bench_workers, label=label)
             return {"episodes": s.total, "successes": s.successes}

@@ -5,10 +5,10 @@
     control = agent.act(obs)       # yawil.sim.types.Control
     agent.last                     # raw outputs of that step (actions, speed, attention maps) for heat maps
 
-Preprocessing (the same as yawil.train.prepare_batch): image uint8 HWC -> float [0, 1] CHW; speed and
-guidance normalised with the checkpoint's training statistics; guidance computed from the observation's
-route with the checkpoint's GuidanceConfig (the projection hint is kept across frames); the command as a
-branch index (command_index). Post-processing is `PostProcess`, documented in docs/training.md.
+Preprocessing is the model-input contract of `yawil.policy.inputs`, the one the trainer uses: image uint8 HWC
+-> float [0, 1] CHW; speed and guidance normalised with the checkpoint's training statistics; guidance computed
+from the observation's route with the checkpoint's GuidanceConfig (the projection hint is kept across frames);
+the command as a branch index (command_index). Post-processing is `PostProcess`, documented in docs/training.md.
 The benchmark needs only `reset()` and `act(obs)`.
 """
 
@@ -23,15 +23,17 @@ import torch
 
 from yawil.checkpoint import Norm, load_checkpoint, model_from_checkpoint
 from yawil.expert import ExpertConfig
-from yawil.guidance import (
-    COMMAND_NOISE_MODES,
-    YAW_NOISE_MODES,
-    CommandNoise,
-    GuidanceConfig,
-    compute_guidance,
+from yawil.guidance import COMMAND_NOISE_MODES, YAW_NOISE_MODES, CommandNoise, GuidanceConfig
+from yawil.policy.inputs import (
+    InputSpec,
+    ModelInputs,
+    check_observation_image,
+    guidance_kind,
+    observation_guidance,
+    takes_command,
 )
+from yawil.policy.runtime import Runtime, resolve_runtime
 from yawil.sim.types import DT, Control, Observation, command_index
-from yawil.train import Runtime, resolve_runtime
 
 
 @dataclass(frozen=True)
@@ -153,8 +155,8 @@ class Agent:
             self.model.to(memory_format=torch.channels_last)  # type: ignore[call-arg]
         self.norm = norm
         self.guidance_config = guidance_config
-        self.kind: str | None = getattr(model, "guidance", None)
-        self.uses_command = bool(getattr(model, "uses_command", False))
+        self.kind: str | None = guidance_kind(model)
+        self.uses_command = takes_command(model)
         if self.kind is not None and len(norm.guidance_mean) != getattr(model, "guidance_dim", -1):
             raise ValueError(
                 f"the normalisation has {len(norm.guidance_mean)} guidance values, "
@@ -215,50 +217,47 @@ class Agent:
     def _new_command_noise(self) -> CommandNoise:
         return CommandNoise(self.command_noise_p, self._rng, mode=self.command_noise_mode)
 
-    def inputs(self, obs: Observation) -> tuple[dict[str, torch.Tensor | None], np.ndarray | None, int | None]:
-        """The network inputs of one observation (batch of 1), plus the raw guidance and command index."""
-        if obs.image is None:
-            raise ValueError("observation has no camera image; the scenario must have camera=True for a learned agent")
-        img = np.asarray(obs.image)
-        if img.ndim != 3 or img.shape[2] != 3 or img.dtype != np.uint8:
-            raise ValueError(f"observation image: expected uint8 (H, W, 3), got {img.dtype} {img.shape}")
-        dev = self.runtime.device
-        image = torch.from_numpy(np.ascontiguousarray(img)).to(dev).permute(2, 0, 1)[None].float().div_(255.0)
-        if self.runtime.channels_last:
-            image = image.contiguous(memory_format=torch.channels_last)
-        speed = self.norm.speed(torch.tensor([[float(obs.speed)]], dtype=torch.float32, device=dev))
+    @property
+    def spec(self) -> InputSpec:
+        """How this agent's model takes its inputs (`yawil.policy.inputs`): normalisation, kind, command, runtime."""
+        return InputSpec(self.norm, self.kind, self.uses_command, self.runtime)
+
+    def model_inputs(self, obs: Observation) -> tuple[ModelInputs, np.ndarray | None, int | None]:
+        """The network inputs of one observation (batch of 1), plus the raw guidance and command index.
+
+        The noise stream is drawn in a fixed order: the yaw noise of the guidance, then the command noise.
+        """
+        img = check_observation_image(obs)
         guidance_raw: np.ndarray | None = None
-        guidance: torch.Tensor | None = None
         if self.kind is not None:
-            g, self._hint = compute_guidance(
-                obs.route.xy,
-                obs.route.lane_yaw,
-                (obs.pose.x, obs.pose.y),
-                obs.pose.yaw,
-                obs.bounds,
+            guidance_raw, self._hint = observation_guidance(
+                obs,
                 self.guidance_config,
-                hint_index=self._hint,
+                self.kind,
+                hint=self._hint,
                 yaw_noise_deg=self.yaw_noise_deg,
-                rng=self._rng if self.yaw_noise_deg > 0 else None,
+                rng=self._rng,
                 yaw_noise_mode=self.yaw_noise_mode,
             )
-            guidance_raw = np.asarray(g.get(self.kind), dtype=np.float32)
-            guidance = self.norm.guidance(torch.from_numpy(guidance_raw.copy()).to(dev)[None])
+        option: int | None = None
         command_idx: int | None = None
-        command: torch.Tensor | None = None
         if self.uses_command:
             option = int(obs.command)
             if self._command_noise is not None:
                 option = self._command_noise(option)
             command_idx = command_index(option)
-            command = torch.tensor([command_idx], dtype=torch.int64, device=dev)
-        return {"image": image, "speed": speed, "guidance": guidance, "command": command}, guidance_raw, command_idx
+        return self.spec.from_frame(img, obs.speed, guidance_raw, option), guidance_raw, command_idx
+
+    def inputs(self, obs: Observation) -> tuple[dict[str, torch.Tensor | None], np.ndarray | None, int | None]:
+        """`model_inputs` with the inputs as a dict by name (image, speed, guidance, command)."""
+        x, guidance_raw, command_idx = self.model_inputs(obs)
+        return x.as_dict(), guidance_raw, command_idx
 
     @torch.inference_mode()
     def act(self, obs: Observation) -> Control:
-        x, guidance_raw, command_idx = self.inputs(obs)
+        x, guidance_raw, command_idx = self.model_inputs(obs)
         with self.runtime.autocast():
-            out = self.model(x["image"], x["speed"], guidance=x["guidance"], command=x["command"])
+            out = x.forward(self.model)
         actions = out.actions[0].float().cpu().numpy()
         speed = float(self.norm.speed_inverse(out.speed[0, 0].float()).cpu())
         target_speed = None

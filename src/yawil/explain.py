@@ -216,16 +216,6 @@ def _save(fig, path: Path) -> None:  # type: ignore[no-untyped-def]
 LAYER_NAMES = ("layer 1", "layer 2", "layer 3")
 
 
-def _image_tensor(agent, image: np.ndarray):  # type: ignore[no-untyped-def]
-    """The training preprocessing of an image: uint8 HWC -> float [0, 1] [1, 3, H, W] on the agent's device."""
-    import torch
-
-    t = torch.from_numpy(np.ascontiguousarray(image)).to(agent.runtime.device).permute(2, 0, 1)[None].float().div_(255.0)
-    if agent.runtime.channels_last:
-        t = t.contiguous(memory_format=torch.channels_last)
-    return t
-
-
 def _maps_of(agent, image_tensor, attention: list) -> tuple[list[np.ndarray], list[str]]:  # type: ignore[no-untyped-def]
     """Attention maps when the model has them; else the activation maps of its first three stages (CILRS)."""
     if attention:
@@ -241,7 +231,7 @@ def explain_observation(agent, obs, title: str = "") -> Explained:  # type: igno
     """Run the agent on one observation and collect its maps (it acts, so its route hint advances)."""
     control = agent.act(obs)
     last = agent.last
-    maps, names = _maps_of(agent, _image_tensor(agent, obs.image), last.attention)
+    maps, names = _maps_of(agent, agent.spec.image(obs.image), last.attention)
     return Explained(
         image=np.asarray(obs.image),
         maps=maps,
@@ -255,27 +245,17 @@ def explain_observation(agent, obs, title: str = "") -> Explained:  # type: igno
 
 
 def explain_record(agent, record, title: str = "") -> Explained:  # type: ignore[no-untyped-def]
-    """Run the agent's network on a dataset frame, with the frame's stored speed, guidance and command."""
+    """Run the agent's network on a dataset frame, with the frame's stored speed, guidance and command (the
+    model-input contract's `from_record`: the agent's preprocessing of an observation)."""
     import torch
 
-    from yawil.sim.types import command_index
-
-    dev = agent.runtime.device
-    image = _image_tensor(agent, record.image)
-    speed = agent.norm.speed(torch.tensor([[float(record.speed)]], dtype=torch.float32, device=dev))
-    guidance = None
-    if agent.kind is not None:
-        raw = np.asarray(getattr(record, f"guidance_{agent.kind}"), dtype=np.float32)
-        guidance = agent.norm.guidance(torch.from_numpy(raw.copy()).to(dev)[None])
-    command = None
-    if agent.uses_command:
-        command = torch.tensor([command_index(record.command)], dtype=torch.int64, device=dev)
+    x = agent.spec.from_record(record)
     with torch.inference_mode(), agent.runtime.autocast():
-        out = agent.model(image, speed, guidance=guidance, command=command)
+        out = x.forward(agent.model)
     actions = out.actions[0].float().cpu().numpy()
     control = agent.post(actions, float(record.speed))
     attention = [a[0].float().cpu().numpy() for a in out.attention]
-    maps, names = _maps_of(agent, image, attention)
+    maps, names = _maps_of(agent, x.image, attention)
     return Explained(
         image=np.asarray(record.image),
         maps=maps,

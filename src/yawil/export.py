@@ -1,7 +1,8 @@
 """`yawil export CHECKPOINT --onnx out.onnx [--check]`: a trained model as an ONNX graph.
 
-Inputs (dynamic batch): `image` float32 [B, 3, H, W] in [0, 1]; `speed` float32 [B, 1] normalised; then
-`guidance` float32 [B, D] normalised (guided models) or `command` int64 [B] branch index (CIL, CILRS).
+Inputs (dynamic batch), those of the model-input contract (`yawil.policy.inputs.ModelInputs`, the agent's and the
+trainer's): `image` float32 [B, 3, H, W] in [0, 1]; `speed` float32 [B, 1] normalised; then `guidance` float32
+[B, D] normalised (guided models) or `command` int64 [B] branch index (CIL, CILRS).
 Outputs: `actions` [B, 3], `pred_speed` [B, 1] (normalised; ONNX forbids reusing the input name), and `attention_i` [B, h, w] for YILRatt.
 The checkpoint's normalisation and guidance config are stored in the model's metadata (`yawil.norm`,
 `yawil.guidance_config`, `yawil.model`) so that a consumer can reproduce the agent's preprocessing.
@@ -43,28 +44,25 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
 
 
 def input_names(model: Any) -> list[str]:
-    names = ["image", "speed"]
-    if getattr(model, "guidance", None) is not None:
-        names.append("guidance")
-    if getattr(model, "uses_command", False):
-        names.append("command")
-    return names
+    """The graph's inputs in order (`yawil.policy.inputs.input_names`)."""
+    from yawil.policy.inputs import input_names as names_of
+
+    return names_of(model)
 
 
 def example_inputs(model: Any, batch: int, seed: int = 0, image_size: tuple[int, int] = (88, 200)) -> dict[str, Any]:
-    """A random batch of valid inputs (seeded), for tracing and for the agreement check."""
+    """A random batch of valid inputs (seeded), for tracing and for the agreement check: the model's inputs of the
+    contract (`ModelInputs.named`), drawn in the order image, speed, guidance, command."""
     import torch
 
+    from yawil.policy.inputs import ModelInputs, guidance_kind, takes_command
+
     g = torch.Generator().manual_seed(seed)
-    x: dict[str, Any] = {
-        "image": torch.rand(batch, 3, *image_size, generator=g),
-        "speed": torch.randn(batch, 1, generator=g),
-    }
-    if getattr(model, "guidance", None) is not None:
-        x["guidance"] = torch.randn(batch, int(model.guidance_dim), generator=g)
-    if getattr(model, "uses_command", False):
-        x["command"] = torch.randint(0, 4, (batch,), generator=g, dtype=torch.int64)
-    return x
+    image = torch.rand(batch, 3, *image_size, generator=g)
+    speed = torch.randn(batch, 1, generator=g)
+    guidance = torch.randn(batch, int(model.guidance_dim), generator=g) if guidance_kind(model) is not None else None
+    command = torch.randint(0, 4, (batch,), generator=g, dtype=torch.int64) if takes_command(model) else None
+    return dict(ModelInputs(image, speed, guidance, command).named())
 
 
 def _image_size(model: Any) -> tuple[int, int]:
@@ -76,14 +74,15 @@ def _wrap(model: Any, names: list[str]) -> Any:
     """Positional inputs and a flat tuple of outputs, as the ONNX exporter wants."""
     import torch
 
+    from yawil.policy.inputs import ModelInputs
+
     class Flat(torch.nn.Module):
         def __init__(self) -> None:
             super().__init__()
             self.model = model
 
         def forward(self, *args: torch.Tensor) -> tuple[torch.Tensor, ...]:
-            kw = dict(zip(names, args, strict=True))
-            out = self.model(kw["image"], kw["speed"], guidance=kw.get("guidance"), command=kw.get("command"))
+            out = ModelInputs(**dict(zip(names, args, strict=True))).forward(self.model)
             return (out.actions, out.speed, *out.attention)
 
     return Flat().eval()
@@ -101,6 +100,7 @@ def export_onnx(checkpoint: str | Path, onnx_path: str | Path, opset: int = OPSE
 
     from yawil.checkpoint import load_checkpoint, model_from_checkpoint
     from yawil.fileio import default_file_mode
+    from yawil.policy.inputs import ModelInputs
 
     if opset < 17:
         raise ValueError(f"--opset {opset}: expected >= 17")
@@ -109,7 +109,7 @@ def export_onnx(checkpoint: str | Path, onnx_path: str | Path, opset: int = OPSE
     names = input_names(model)
     example = example_inputs(model, 2, image_size=_image_size(model))
     with torch.no_grad():
-        out = model(example["image"], example["speed"], guidance=example.get("guidance"), command=example.get("command"))
+        out = ModelInputs(**example).forward(model)
     n_att = len(out.attention)
     outputs = ["actions", "pred_speed", *[f"attention_{i}" for i in range(n_att)]]
     dynamic = {name: {0: "batch"} for name in names + outputs}

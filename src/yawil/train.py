@@ -22,7 +22,7 @@ import sys
 import threading
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
-from contextlib import AbstractContextManager, contextmanager, nullcontext
+from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
@@ -35,11 +35,11 @@ from torch import Tensor
 from yawil.augment import AugmentConfig, augment_batch
 from yawil.checkpoint import Norm, load_checkpoint, make_checkpoint, save_checkpoint
 from yawil.fileio import write_atomic
+from yawil.policy.inputs import InputSpec, guidance_key
+from yawil.policy.runtime import DEVICES, PRECISIONS, Runtime, resolve_runtime
 
 LOSSES = ("l1", "mse", "smooth_l1")
 BRAKE_LOSSES = ("same", "bce")
-PRECISIONS = ("auto", "fp32", "bf16", "fp16")
-DEVICES = ("auto", "cpu", "cuda")
 SWITCHES = ("auto", "on", "off")
 # What may change when a run is resumed: budgets and where/how it runs, never what it learns from.
 RESUMABLE_CHANGES = frozenset(
@@ -211,19 +211,8 @@ def _is_num(v: Any) -> bool:
 
 
 # ------------------------------------------------------------------------------------------ device, AMP
-@dataclass(frozen=True)
-class Runtime:
-    """Where and how tensors are computed, resolved once from the config."""
-
-    device: torch.device
-    precision: str  # fp32 | bf16 | fp16
-    channels_last: bool
-
-    def autocast(self) -> AbstractContextManager[Any]:
-        if self.precision == "fp32":
-            return nullcontext()
-        dtype = torch.bfloat16 if self.precision == "bf16" else torch.float16
-        return torch.autocast(self.device.type, dtype=dtype)
+# Runtime, resolve_runtime and cpu_has_fast_bf16 live in yawil.policy.runtime (the agent shares them); Runtime and
+# resolve_runtime are imported above, so `from yawil.train import Runtime, resolve_runtime` keeps working.
 
 
 def auto_threads(workers: int) -> int:
@@ -234,30 +223,6 @@ def auto_threads(workers: int) -> int:
     trainer never asks for more threads than the cores its own loader workers leave free.
     """
     return max(1, (os.cpu_count() or 1) - workers)
-
-
-def cpu_has_fast_bf16() -> bool:
-    """oneDNN reports native bf16 (AVX512-BF16 / AMX); elsewhere bf16 is emulated and slower than fp32."""
-    try:
-        return bool(torch.ops.mkldnn._is_mkldnn_bf16_supported())
-    except (AttributeError, RuntimeError):
-        return False
-
-
-def resolve_runtime(device: str = "auto", precision: str = "auto", channels_last: str = "auto") -> Runtime:
-    if device == "auto":
-        device = "cuda" if torch.cuda.is_available() else "cpu"
-    if device == "cuda" and not torch.cuda.is_available():
-        raise ValueError("device='cuda' but torch sees no CUDA device; use --device cpu or auto")
-    if device not in ("cpu", "cuda"):
-        raise ValueError(f"device: expected one of {DEVICES}, got {device!r}")
-    if precision == "auto":
-        precision = "fp16" if device == "cuda" else ("bf16" if cpu_has_fast_bf16() else "fp32")
-    if precision == "fp16" and device == "cpu":
-        raise ValueError("precision='fp16' needs CUDA; on the CPU use bf16 or fp32")
-    if precision not in ("fp32", "bf16", "fp16"):
-        raise ValueError(f"precision: expected one of {PRECISIONS}, got {precision!r}")
-    return Runtime(torch.device(device), precision, channels_last != "off")
 
 
 # ------------------------------------------------------------------------------------------------- data
@@ -277,23 +242,18 @@ class Batch:
 def prepare_batch(
     raw: Mapping[str, Any], norm: Norm, kind: str | None, uses_command: bool, runtime: Runtime
 ) -> Batch:
+    """The model inputs through the one contract (`yawil.policy.inputs`, as the agent's), plus the targets."""
+    x = InputSpec(norm, kind, uses_command, runtime).from_batch(raw)
+    assert x.speed_raw is not None  # from_batch always keeps it
     dev = runtime.device
-    image = torch.as_tensor(raw["image"]).to(dev, non_blocking=True).float().div_(255.0)
-    if runtime.channels_last:
-        image = image.contiguous(memory_format=torch.channels_last)
-    speed_raw = torch.as_tensor(raw["speed"]).to(dev).float().reshape(-1, 1)
-    guidance = None
-    if kind is not None:
-        guidance = norm.guidance(torch.as_tensor(raw[f"guidance_{kind}"]).to(dev).float())
-    command = torch.as_tensor(raw["command"]).to(dev).long().reshape(-1) if uses_command else None
     action = torch.as_tensor(raw["action"]).to(dev).float()
     privileged = torch.as_tensor(raw["privileged"]).to(dev).float() if "privileged" in raw else None
-    return Batch(image, norm.speed(speed_raw), guidance, command, action, speed_raw, privileged)
+    return Batch(x.image, x.speed, x.guidance, x.command, action, x.speed_raw, privileged)
 
 
 def label_arrays(dataset: Any, kind: str | None) -> tuple[np.ndarray, np.ndarray | None]:
     """Speed and guidance of every training sample, for the normalisation statistics."""
-    cols = label_columns(dataset, ["speed"] + ([] if kind is None else [f"guidance_{kind}"]))
+    cols = label_columns(dataset, ["speed"] + ([] if kind is None else [guidance_key(kind)]))
     return cols[0].reshape(-1), (cols[1] if kind is not None else None)
 
 

@@ -1,0 +1,200 @@
+"""The model-input contract: the one place where a dataset batch, a dataset frame or an Observation becomes the
+inputs of a driving network, for training, the agent, heat maps and ONNX export alike.
+
+    spec = InputSpec.of(model, norm, runtime)      # what the model takes (guidance kind, command) and how
+    x = spec.from_batch(raw)                        # a DataLoader batch (training, validation)
+    x = spec.from_frame(image, speed, g, option)    # one frame: an Observation (the agent) or a FrameRecord
+    out = x.forward(model)                          # model(image, speed, guidance=..., command=...)
+
+The inputs (`ModelInputs`, in the ONNX graph's order): `image` float32 [B, 3, H, W] in [0, 1] (uint8 / 255;
+channels_last memory when the Runtime says so); `speed` float32 [B, 1] normalised with the checkpoint's `Norm`;
+`guidance` float32 [B, D] normalised (guided models: the kind the model names, read from the dataset field
+`guidance_<kind>` or computed from the route by `observation_guidance`), else None; `command` int64 [B], the
+branch index of the road option (`yawil.sim.types.command_index`; CIL, CILRS), else None.
+
+A batch arrives as the dataset gives it (image uint8 [B, 3, H, W], command already a branch index); a frame as
+the camera gives it (uint8 [H, W, 3], command a RoadOption value). Both paths keep the exact operations (and so
+the exact values, dtypes and memory layouts) the trainer and the agent have always used.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Mapping
+from dataclasses import dataclass
+from typing import Any
+
+import numpy as np
+import torch
+from torch import Tensor
+
+from yawil.checkpoint import Norm
+from yawil.guidance import GUIDANCE_KINDS, GuidanceConfig, compute_guidance
+from yawil.policy.runtime import Runtime
+from yawil.sim.types import Observation, command_index
+
+INPUT_NAMES = ("image", "speed", "guidance", "command")  # every input, in the ONNX graph's order
+
+
+def guidance_key(kind: str) -> str:
+    """The dataset field of a guidance kind (batch key, FrameRecord attribute, label column): guidance_<kind>."""
+    if kind not in GUIDANCE_KINDS:
+        raise ValueError(f"guidance kind must be one of {GUIDANCE_KINDS}, got {kind!r}")
+    return f"guidance_{kind}"
+
+
+def guidance_kind(model: Any) -> str | None:
+    """The guidance kind a model takes (yaw, xy, sim_yaw), or None for a model that takes the command."""
+    kind: str | None = getattr(model, "guidance", None)
+    return kind
+
+
+def takes_command(model: Any) -> bool:
+    """Whether a model takes the high-level command (the branched CIL and CILRS)."""
+    return bool(getattr(model, "uses_command", False))
+
+
+def input_names(model: Any) -> list[str]:
+    """The inputs a model takes, in order: image, speed, then guidance (guided) and/or command (branched)."""
+    names = ["image", "speed"]
+    if guidance_kind(model) is not None:
+        names.append("guidance")
+    if takes_command(model):
+        names.append("command")
+    return names
+
+
+@dataclass(frozen=True)
+class ModelInputs:
+    """The prepared inputs of one forward pass (see the module's docstring for shapes and units).
+
+    `speed_raw` is the measured speed in m/s before normalisation ([B, 1]), kept for losses and metrics; it is
+    not a network input.
+    """
+
+    image: Tensor
+    speed: Tensor
+    guidance: Tensor | None = None
+    command: Tensor | None = None
+    speed_raw: Tensor | None = None
+
+    def as_dict(self) -> dict[str, Tensor | None]:
+        """The four network inputs by name (None where the model takes no such input)."""
+        return {"image": self.image, "speed": self.speed, "guidance": self.guidance, "command": self.command}
+
+    def named(self) -> dict[str, Tensor]:
+        """The inputs present, by name, in the ONNX graph's order (`input_names`)."""
+        return {name: t for name, t in self.as_dict().items() if t is not None}
+
+    def forward(self, model: Any) -> Any:
+        """Run a driving network on these inputs (its ModelOutput)."""
+        return model(self.image, self.speed, guidance=self.guidance, command=self.command)
+
+
+@dataclass(frozen=True)
+class InputSpec:
+    """What one model takes and how its inputs are prepared: the checkpoint's normalisation, the guidance kind
+    (None: no guidance), whether it takes the command, and the Runtime (device, channels_last)."""
+
+    norm: Norm
+    kind: str | None
+    uses_command: bool
+    runtime: Runtime
+
+    @classmethod
+    def of(cls, model: Any, norm: Norm, runtime: Runtime) -> InputSpec:
+        return cls(norm, guidance_kind(model), takes_command(model), runtime)
+
+    @property
+    def guidance_key(self) -> str | None:
+        return None if self.kind is None else guidance_key(self.kind)
+
+    def names(self) -> list[str]:
+        return [n for n, on in zip(INPUT_NAMES, (True, True, self.kind is not None, self.uses_command), strict=True) if on]
+
+    # ---- a dataset batch (DataLoader output: image uint8 [B, 3, H, W], command a branch index)
+    def from_batch(self, raw: Mapping[str, Any]) -> ModelInputs:
+        dev = self.runtime.device
+        image = torch.as_tensor(raw["image"]).to(dev, non_blocking=True).float().div_(255.0)
+        if self.runtime.channels_last:
+            image = image.contiguous(memory_format=torch.channels_last)
+        speed_raw = torch.as_tensor(raw["speed"]).to(dev).float().reshape(-1, 1)
+        guidance = None
+        if self.kind is not None:
+            guidance = self.norm.guidance(torch.as_tensor(raw[guidance_key(self.kind)]).to(dev).float())
+        command = torch.as_tensor(raw["command"]).to(dev).long().reshape(-1) if self.uses_command else None
+        return ModelInputs(image, self.norm.speed(speed_raw), guidance, command, speed_raw)
+
+    # ---- one frame (batch of 1): the camera's uint8 (H, W, 3), the speed in m/s, raw guidance, a RoadOption value
+    def image(self, image: np.ndarray) -> Tensor:
+        """uint8 (H, W, 3) -> float [1, 3, H, W] in [0, 1] on the device (a permuted view: channels_last memory)."""
+        t = torch.from_numpy(np.ascontiguousarray(image)).to(self.runtime.device).permute(2, 0, 1)[None].float().div_(255.0)
+        if self.runtime.channels_last:
+            t = t.contiguous(memory_format=torch.channels_last)
+        return t
+
+    def from_frame(
+        self, image: np.ndarray, speed: float, guidance: np.ndarray | None = None, command: int | None = None
+    ) -> ModelInputs:
+        """One frame's inputs. `guidance`: the raw (unnormalised) vector of the model's kind; `command`: the road
+        option (RoadOption value), turned into its branch index here."""
+        dev = self.runtime.device
+        g = None
+        if self.kind is not None:
+            if guidance is None:
+                raise ValueError(f"the model takes {self.kind} guidance; none was given")
+            raw = np.asarray(guidance, dtype=np.float32)
+            g = self.norm.guidance(torch.from_numpy(raw.copy()).to(dev)[None])
+        c = None
+        if self.uses_command:
+            if command is None:
+                raise ValueError("the model takes the command; none was given")
+            c = torch.tensor([command_index(int(command))], dtype=torch.int64, device=dev)
+        speed_raw = torch.tensor([[float(speed)]], dtype=torch.float32, device=dev)
+        return ModelInputs(self.image(image), self.norm.speed(speed_raw), g, c, speed_raw)
+
+    def from_record(self, record: Any) -> ModelInputs:
+        """A stored frame (`yawil.data.schema.FrameRecord`) with its own speed, guidance and command."""
+        key = self.guidance_key
+        return self.from_frame(
+            record.image,
+            record.speed,
+            None if key is None else getattr(record, key),
+            record.command if self.uses_command else None,
+        )
+
+
+def check_observation_image(obs: Observation) -> np.ndarray:
+    """The observation's camera image, refused unless uint8 (H, W, 3)."""
+    if obs.image is None:
+        raise ValueError("observation has no camera image; the scenario must have camera=True for a learned agent")
+    img = np.asarray(obs.image)
+    if img.ndim != 3 or img.shape[2] != 3 or img.dtype != np.uint8:
+        raise ValueError(f"observation image: expected uint8 (H, W, 3), got {img.dtype} {img.shape}")
+    return img
+
+
+def observation_guidance(
+    obs: Observation,
+    config: GuidanceConfig,
+    kind: str,
+    *,
+    hint: int | None,
+    yaw_noise_deg: float = 0.0,
+    rng: np.random.Generator | None = None,
+    yaw_noise_mode: str = "raw",
+) -> tuple[np.ndarray, int]:
+    """The raw guidance vector of `kind` for an observation (float32) and the route-projection hint for the next
+    frame. `rng` is drawn from only when `yaw_noise_deg` > 0 (Table II)."""
+    g, hint_out = compute_guidance(
+        obs.route.xy,
+        obs.route.lane_yaw,
+        (obs.pose.x, obs.pose.y),
+        obs.pose.yaw,
+        obs.bounds,
+        config,
+        hint_index=hint,
+        yaw_noise_deg=yaw_noise_deg,
+        rng=rng if yaw_noise_deg > 0 else None,
+        yaw_noise_mode=yaw_noise_mode,
+    )
+    return np.asarray(g.get(kind), dtype=np.float32), hint_out

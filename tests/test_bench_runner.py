@@ -98,7 +98,7 @@ def test_an_agent_that_stops_for_good_is_blocked_one_that_creeps_is_not(tmp_path
     from yawil.bench.metrics import BLOCKED_S
 
     ep = episodes("nocrash", conditions=["training"], tasks=["empty"], routes="0", seeds=1, weather_rule="cycle")[0]
-    assert ep.timeout_s > 5 * BLOCKED_S
+    assert ep.timeout_s > 2 * BLOCKED_S
     s = run_benchmark([ep], AgentSpec("scripted"), tmp_path / "a", world_factory=LineWorld,
                       agent_factory=lambda seed: Gas(0.0), progress=False)
     rec = s.records[0]

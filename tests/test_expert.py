@@ -406,3 +406,45 @@ def test_points_past_the_goal_lie_on_the_route_s_extension() -> None:
     assert rc.length == pytest.approx(50.0)
     for ahead in (0.0, 3.0, 11.0, 20.0):
         assert rc.point_at(50.0 + ahead) == pytest.approx(np.array([50.0 + ahead, 0.0]))
+
+
+def test_room_before_lights_equals_one_light_at_a_time() -> None:
+    """The (lights x vehicles) form gives, to the last bit, what the per-light loop it replaced gave."""
+    import math
+
+    from yawil.guidance import wrap_to_pi
+    from yawil.sim.types import LightState
+
+    expert = Expert()
+
+    def reference(lights, pos, yaw, spd, length, is_ped):  # type: ignore[no-untyped-def]
+        room = np.full(len(pos), np.inf)
+        for ls in lights:
+            if ls.state == "green":
+                continue
+            c, s = math.cos(ls.yaw), math.sin(ls.yaw)
+            rx, ry = ls.x - pos[:, 0], ls.y - pos[:, 1]
+            ahead = rx * c + ry * s - 0.5 * length
+            lane = (np.abs(-rx * s + ry * c) < 1.75) & (np.abs(wrap_to_pi(yaw - ls.yaw)) < math.radians(30.0))
+            stops = ~is_ped & lane & (ahead > -0.5) & (ahead < 60.0)
+            if ls.state == "yellow":
+                stops &= ahead >= spd * spd / (2.0 * expert.config.traffic_yellow_decel)
+            room = np.where(stops, np.minimum(room, np.maximum(ahead, 0.0)), room)
+        return room
+
+    rng = np.random.default_rng(0)
+    finite = 0
+    for _ in range(300):
+        n_lights, n = int(rng.integers(0, 30)), int(rng.integers(0, 40))
+        lights = tuple(LightState(i, str(rng.choice(["red", "yellow", "green"])), *rng.uniform(0, 100, 2),
+                                  float(rng.uniform(-4, 4))) for i in range(n_lights))
+        pos, yaw = rng.uniform(0, 100, (n, 2)), rng.uniform(-4, 4, n)
+        for j in range(min(n, n_lights)):  # vehicles in the lane before a light, some past it
+            ls, d = lights[j], rng.uniform(-1, 70)
+            pos[j] = (ls.x - d * math.cos(ls.yaw) + rng.normal(0, 1), ls.y - d * math.sin(ls.yaw) + rng.normal(0, 1))
+            yaw[j] = ls.yaw + rng.normal(0, 0.3)
+        args = (lights, pos, yaw, rng.uniform(0, 10, n), rng.uniform(3, 6, n), rng.random(n) < 0.3)
+        got, want = expert._room_before_lights(*args), reference(*args)
+        assert got.shape == want.shape and np.array_equal(got, want)
+        finite += int(np.isfinite(got).sum())
+    assert finite > 100  # the draws did put vehicles before red and yellow lights

@@ -19,7 +19,7 @@ from hypothesis import strategies as st
 
 from yawil.sim.carla import convert
 from yawil.sim.carla.infractions import (
-    SensorCollisionCriterion,
+    SensorContacts,
     classify_region,
     collision_kind,
     light_state_name,
@@ -33,7 +33,7 @@ from yawil.sim.carla.topology import (
     write_map_description,
 )
 from yawil.sim.carla.weather import CARLA_PRESETS, carla_weather
-from yawil.sim.criteria import LaneInvasionCriterion, RedLightCriterion
+from yawil.sim.criteria import CollisionCriterion, LaneInvasionCriterion, RedLightCriterion
 from yawil.sim.types import Control, EventKind, Pose, RoadOption
 from yawil.sim.weather import WEATHERS
 
@@ -250,10 +250,10 @@ def test_real_map_off_road_and_junction_queries(real_map: carla.Map) -> None:
 
 # ------------------------------------------------------------------------------------------- infractions
 def test_collision_sensor_events_counted_once_per_contact() -> None:
-    c = SensorCollisionCriterion()
+    c = CollisionCriterion()
     seq = [[(7, "vehicle.tesla.model3")], [(7, "vehicle.tesla.model3")] * 3, [], [(7, "vehicle.tesla.model3"), (9, "walker.pedestrian.0001")],
            [(0, "static.pole")]]
-    got = [[(e.other_type, e.other_id) for e in c.update(0.1 * i, 0.0, 0.0, hits)] for i, hits in enumerate(seq)]
+    got = [[(e.other_type, e.other_id) for e in c.update(0.1 * i, 0.0, 0.0, SensorContacts(hits))] for i, hits in enumerate(seq)]
     assert got == [[("vehicle", 7)], [], [], [("pedestrian", 9), ("vehicle", 7)], [("static", None)]]
     assert collision_kind("traffic.traffic_light") == "static"
 

@@ -9,6 +9,7 @@ import pytest
 
 from yawil.sim import Control, Event, EventKind, Pose, Scenario
 from yawil.sim.criteria import (
+    BoxContacts,
     CollisionCriterion,
     DistanceDrivenCriterion,
     GoalCriterion,
@@ -34,11 +35,12 @@ def test_collision_counted_once_per_contact_with_ids() -> None:
     c = CollisionCriterion()
     ego = (0.0, 0.0, 0.0, 4.0, 2.0)
     boxes = np.array([[3.0, 0.0, 0.0, 4.0, 2.0], [0.0, 1.2, 0.0, 0.6, 0.6]])
-    ev = c.update(0.1, ego, boxes, np.array([7, 3]), ["vehicle", "static"])
+    both = BoxContacts(ego, boxes, np.array([7, 3]), ["vehicle", "static"])
+    ev = c.update(0.1, 0.0, 0.0, both)
     assert {(e.other_type, e.other_id) for e in ev} == {("vehicle", 7), ("static", None)}
-    assert c.update(0.2, ego, boxes, np.array([7, 3]), ["vehicle", "static"]) == []
-    assert c.update(0.3, ego, boxes[:0], np.zeros(0, dtype=np.int64), []) == []
-    assert len(c.update(0.4, ego, boxes[:1], np.array([7]), ["vehicle"])) == 1  # a new contact
+    assert c.update(0.2, 0.0, 0.0, both) == []
+    assert c.update(0.3, 0.0, 0.0, BoxContacts(ego, boxes[:0], np.zeros(0, dtype=np.int64), [])) == []
+    assert len(c.update(0.4, 0.0, 0.0, BoxContacts(ego, boxes[:1], np.array([7]), ["vehicle"]))) == 1  # a new contact
 
 
 def test_lane_invasion_once_per_entry() -> None:

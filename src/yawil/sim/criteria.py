@@ -1,18 +1,60 @@
-"""Infraction and progress criteria, one class per event (as CARLA scenario_runner does).
+"""Infraction and progress criteria, one class per event (as CARLA scenario_runner's `atomic_criteria.py`).
 
-They take plain state (numbers and numpy arrays), not a simulator, so every backend reuses them: the
-embedded world feeds them each step, a CARLA backend can feed them the same quantities. Each `update`
-returns the events of that step; each criterion counts an infraction once per onset.
+Every criterion is a `Criterion`: `start(first)` when an episode begins, `judge(state)` once a step, which
+returns the events of that step; each counts an infraction once per onset. `state` is a `StepState`, plain
+numbers and arrays that each backend fills from its own simulator, so every backend runs the same rules.
+`yawil.sim.judge.EpisodeJudge` composes them once for both worlds. Each criterion also keeps its rule as a
+method on plain numbers (`update(...)`), for callers outside an episode (the benchmark's tracker, tests).
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Protocol
 
 import numpy as np
 
 from yawil.sim.types import Event, EventKind
+
+
+class Contacts(Protocol):
+    """What the ego touches this step, as each backend knows it (boxes, a collision sensor)."""
+
+    def touching(self) -> set[tuple[str, int]]:
+        """(kind, id) of everything in contact: kind "vehicle" | "pedestrian" | "static"."""
+        ...
+
+
+@dataclass(frozen=True)
+class StepState:
+    """What the criteria see of one step (the step's end; `prev_xy` is the ego's position before it)."""
+
+    time: float
+    x: float
+    y: float
+    yaw: float
+    prev_xy: tuple[float, float]
+    route_index: int  # the ego's projection on the route (RouteProgressCriterion), this step
+    region: str  # where the ego is: one of LaneInvasionCriterion.REGIONS
+    light_states: Sequence[str]  # the state name of each stop line the judge was built with
+    contacts: Contacts
+
+
+class Criterion:
+    """One rule of an episode. Subclasses implement `judge`; `start` resets them (override if it needs `first`)."""
+
+    def reset(self) -> None:
+        """Forget the previous episode."""
+
+    def start(self, first: StepState) -> None:
+        """A new episode begins at `first` (nothing is judged on it)."""
+        self.reset()
+
+    def judge(self, state: StepState) -> list[Event]:
+        """The events of the step that ends in `state`."""
+        raise NotImplementedError
 
 
 def nocrash_timeout(route_length: float) -> float:
@@ -45,7 +87,21 @@ def boxes_overlap(ego: Sequence[float], boxes: np.ndarray) -> np.ndarray:
     return ~separated
 
 
-class CollisionCriterion:
+@dataclass(frozen=True)
+class BoxContacts:
+    """Contacts by oriented boxes: the ego's (x, y, yaw, length, width) against candidates (K, 5)."""
+
+    ego: Sequence[float]
+    boxes: np.ndarray
+    ids: np.ndarray
+    types: Sequence[str]  # "vehicle" | "pedestrian" | "static" of each candidate
+
+    def touching(self) -> set[tuple[str, int]]:
+        hit = boxes_overlap(self.ego, self.boxes) if len(self.boxes) else np.zeros(0, dtype=bool)
+        return {(self.types[i], int(self.ids[i])) for i in np.flatnonzero(hit).tolist()}
+
+
+class CollisionCriterion(Criterion):
     """A collision event each time the ego starts touching another actor or a static object."""
 
     def __init__(self) -> None:
@@ -54,21 +110,22 @@ class CollisionCriterion:
     def reset(self) -> None:
         self._touching = set()
 
-    def update(self, time: float, ego: Sequence[float], boxes: np.ndarray, ids: np.ndarray,
-               types: Sequence[str]) -> list[Event]:
-        """`boxes` (K, 5) of candidates, their `ids` and `types` ("vehicle", "pedestrian", "static")."""
-        hit = boxes_overlap(ego, boxes) if len(boxes) else np.zeros(0, dtype=bool)
-        now = {(types[i], int(ids[i])) for i in np.flatnonzero(hit).tolist()}
+    def update(self, time: float, x: float, y: float, contacts: Contacts) -> list[Event]:
+        """One event per (kind, id) in `contacts` that was not touching on the previous step."""
+        now = contacts.touching()
         events = [
-            Event(EventKind.COLLISION, time, float(ego[0]), float(ego[1]),
-                  other_id=None if kind == "static" else oid, other_type=kind)
+            Event(EventKind.COLLISION, time, float(x), float(y), other_id=None if kind == "static" else oid,
+                  other_type=kind)
             for kind, oid in sorted(now - self._touching)
         ]
         self._touching = now
         return events
 
+    def judge(self, state: StepState) -> list[Event]:
+        return self.update(state.time, state.x, state.y, state.contacts)
 
-class LaneInvasionCriterion:
+
+class LaneInvasionCriterion(Criterion):
     """Entering the opposite-direction lane or leaving the road, counted once per entry.
 
     The backend classifies where the ego is: "lane" (its own direction), "opposite_lane", "junction"
@@ -92,8 +149,14 @@ class LaneInvasionCriterion:
         self._last = region
         return events
 
+    def start(self, first: StepState) -> None:
+        self.reset(first.region)
 
-class RedLightCriterion:
+    def judge(self, state: StepState) -> list[Event]:
+        return self.update(state.time, state.x, state.y, state.region)
+
+
+class RedLightCriterion(Criterion):
     """Crossing a signalised stop line (the ego's centre moving over it, in its direction of travel).
 
     Every crossing is a LIGHT_PASSED event; when the light is red it is also a RED_LIGHT event.
@@ -106,9 +169,6 @@ class RedLightCriterion:
         self.yaw = np.asarray(yaw, dtype=np.float64)
         self.mid = 0.5 * (self.a + self.b)
         self.reach = 0.5 * np.hypot(*(self.b - self.a).T) + 1.0
-
-    def reset(self) -> None:
-        pass
 
     def update(self, time: float, prev_xy: Sequence[float], xy: Sequence[float], yaw: float,
                states: Sequence[str]) -> list[Event]:
@@ -130,6 +190,9 @@ class RedLightCriterion:
                     events.append(Event(EventKind.RED_LIGHT, time, qx, qy, other_id=lid, detail="red"))
         return events
 
+    def judge(self, state: StepState) -> list[Event]:
+        return self.update(state.time, state.prev_xy, (state.x, state.y), state.yaw, state.light_states)
+
 
 def _segments_cross(p: Sequence[float], q: Sequence[float], a: Sequence[float], b: Sequence[float]) -> bool:
     """Proper or touching intersection of segments pq and ab, where q may end on the line but p may not."""
@@ -143,7 +206,11 @@ def _segments_cross(p: Sequence[float], q: Sequence[float], a: Sequence[float], 
 
 
 class RouteProgressCriterion:
-    """The ego's projection on the route (searched near the last one, so loops do not confuse it)."""
+    """The ego's projection on the route (searched near the last one, so loops do not confuse it).
+
+    A measurement, not a `Criterion`: it gives no events, and its index is the other criteria's input
+    (`StepState.route_index`), so the judge takes it first each step.
+    """
 
     def __init__(self, route_xy: np.ndarray, back: int = 5, ahead: int = 40) -> None:
         self.xy = np.asarray(route_xy, dtype=np.float64)
@@ -169,7 +236,9 @@ class RouteProgressCriterion:
         return float(d.sum())
 
 
-class DistanceDrivenCriterion:
+class DistanceDrivenCriterion(Criterion):
+    """Metres driven since the start (`total`); no events."""
+
     def __init__(self) -> None:
         self.total = 0.0
 
@@ -179,6 +248,10 @@ class DistanceDrivenCriterion:
     def update(self, prev_xy: Sequence[float], xy: Sequence[float]) -> float:
         self.total += math.hypot(float(xy[0]) - float(prev_xy[0]), float(xy[1]) - float(prev_xy[1]))
         return self.total
+
+    def judge(self, state: StepState) -> list[Event]:
+        self.update(state.prev_xy, (state.x, state.y))
+        return []
 
 
 GOAL_RADIUS = 2.0  # metres from the route's last waypoint
@@ -234,7 +307,7 @@ def goal_reached(x: float, y: float, route_xy: np.ndarray | Sequence[Sequence[fl
     return float(left[i]) <= GOAL_ROUTE_LEFT
 
 
-class GoalCriterion:
+class GoalCriterion(Criterion):
     """A goal_reached event, once, the first step `goal_reached` holds (the route's table built once)."""
 
     def __init__(self, route_xy: np.ndarray | Sequence[Sequence[float]]) -> None:
@@ -252,8 +325,13 @@ class GoalCriterion:
             return [Event(EventKind.GOAL_REACHED, time, x, y)]
         return []
 
+    def judge(self, state: StepState) -> list[Event]:
+        return self.update(state.time, state.x, state.y, state.route_index)
 
-class TimeoutCriterion:
+
+class TimeoutCriterion(Criterion):
+    """A timeout event, once, when the episode's time reaches `timeout_s`."""
+
     def __init__(self, timeout_s: float) -> None:
         if not math.isfinite(timeout_s) or timeout_s <= 0:
             raise ValueError(f"timeout_s must be a positive number of seconds, got {timeout_s!r}")
@@ -268,3 +346,6 @@ class TimeoutCriterion:
             self.expired = True
             return [Event(EventKind.TIMEOUT, time, x, y)]
         return []
+
+    def judge(self, state: StepState) -> list[Event]:
+        return self.update(state.time, state.x, state.y)

@@ -38,8 +38,8 @@ from gymnasium import spaces
 from yawil.expert import Expert
 from yawil.guidance import GUIDANCE_KINDS, GuidanceConfig, compute_guidance, project_on_route, resample_route
 from yawil.sim.town.layout import resolve_town
-from yawil.sim.town.world import EmbeddedWorld, _check_scenario
-from yawil.sim.types import Control, EventKind, Observation, Scenario, command_index
+from yawil.sim.town.world import EmbeddedWorld
+from yawil.sim.types import Control, EventKind, Observation, Scenario, command_index, validate_scenario
 
 PENALTIES = {EventKind.COLLISION: 50.0, EventKind.LANE_INVASION: 5.0, EventKind.RED_LIGHT: 20.0}
 RENDER_MODES: tuple[str, ...] = ("rgb_array",)
@@ -97,7 +97,7 @@ class YawilDriveEnv(gym.Env[dict[str, Any], np.ndarray]):
                              f"(spacing, count, reference) or None, got {type(guidance_config).__name__}")
         self.scenario = Scenario(town=town, weather=weather, vehicles=vehicles, pedestrians=pedestrians,
                                  camera=camera, timeout_s=timeout_s, min_route_length=min_route_length)
-        _check_scenario(self.scenario)  # weather, counts, timeout, route length: clear errors before any reset
+        validate_scenario(self.scenario)  # weather, counts, timeout, route length: clear errors before any reset
         self.guidance = guidance
         self.guidance_config = guidance_config
         self.render_mode = render_mode
@@ -174,7 +174,7 @@ class YawilDriveEnv(gym.Env[dict[str, Any], np.ndarray]):
         episode_seed = int(self.np_random.integers(0, 2**31 - 1))
         obs = self.world.reset(self.scenario, episode_seed)
         self._last = obs
-        self._progress = self.world.c_progress.progress
+        self._progress = self.world.judge.progress.progress
         self._hint = None
         self._label = label
         if label:
@@ -193,12 +193,12 @@ class YawilDriveEnv(gym.Env[dict[str, Any], np.ndarray]):
             raise ValueError(f"action must be (steer, throttle, brake), got shape {np.shape(action)}")
         obs = self.world.step(Control(float(a[0]), float(a[1]), float(a[2])))
         self._last = obs
-        progress = self.world.c_progress.progress
+        progress = self.world.judge.progress.progress
         reward = progress - self._progress - sum(PENALTIES.get(e.kind, 0.0) for e in obs.events)
         self._progress = progress
         kinds = {e.kind for e in obs.events}
-        terminated = self.world.c_goal.reached or (self.terminate_on_collision and EventKind.COLLISION in kinds)
-        truncated = self.world.c_timeout.expired and not terminated
+        terminated = self.world.judge.goal.reached or (self.terminate_on_collision and EventKind.COLLISION in kinds)
+        truncated = self.world.judge.timeout.expired and not terminated
         if self.render_mode is not None:
             self._trail.append((obs.pose.x, obs.pose.y))
         return self._convert(obs), float(reward), bool(terminated), bool(truncated), self._info(obs)

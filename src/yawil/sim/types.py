@@ -20,6 +20,8 @@ from typing import Protocol, runtime_checkable
 
 import numpy as np
 
+from yawil.sim.weather import get_weather
+
 DT = 0.1  # seconds per step, for every backend
 # Shared by every backend, so that the agent and expert see the same observation whichever world made it:
 COMMAND_LOOKAHEAD = 3  # waypoints ahead of the ego's projection whose road option is the command
@@ -104,6 +106,31 @@ class Scenario:
     timeout_s: float | None = None
     camera: bool = True
     min_route_length: float = 0.0  # for random routes: draw until at least this long (metres)
+
+
+def validate_scenario(sc: object) -> Scenario:
+    """Every backend's check of a scenario before its reset: a clear ValueError naming the bad field.
+
+    The town name is the backend's to check (the embedded one takes layouts, CARLA only its own maps), as is
+    whether the route can be as long as `min_route_length` asks.
+    """
+    if not isinstance(sc, Scenario):
+        raise ValueError(f"reset needs a Scenario, got {type(sc).__name__}")
+    get_weather(sc.weather)
+    for name in ("vehicles", "pedestrians"):
+        n = getattr(sc, name)
+        if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 0:
+            raise ValueError(f"Scenario.{name} must be a non-negative integer, got {n!r}")
+    if sc.timeout_s is not None and (isinstance(sc.timeout_s, bool) or not isinstance(sc.timeout_s, (int, float))
+                                     or not math.isfinite(sc.timeout_s) or sc.timeout_s <= 0):
+        raise ValueError(f"Scenario.timeout_s must be a positive number of seconds or None, got {sc.timeout_s!r}")
+    if not isinstance(sc.min_route_length, (int, float)) or not 0 <= sc.min_route_length < 1e5:
+        raise ValueError(f"Scenario.min_route_length must be a non-negative number of metres, got {sc.min_route_length!r}")
+    for name in ("start", "goal"):
+        p = getattr(sc, name)
+        if p is not None and not (isinstance(p, Pose) and all(math.isfinite(v) for v in (p.x, p.y, p.yaw))):
+            raise ValueError(f"Scenario.{name} must be a Pose with finite values or None, got {p!r}")
+    return sc
 
 
 @dataclass(frozen=True)

@@ -1,19 +1,19 @@
 """What CARLA's sensors and map queries become for yawil's criteria (plain data in, plain data out).
 
-The criteria themselves are `yawil.sim.criteria`'s (lane invasion, red light, progress, goal, timeout);
-only the collision one differs, because CARLA reports contacts through its collision sensor instead of
-boxes: `SensorCollisionCriterion` keeps the same rule (one event per contact onset with an actor).
+The criteria themselves are `yawil.sim.criteria`'s, composed by `yawil.sim.judge.EpisodeJudge` as for the
+embedded world. CARLA reports contacts through its collision sensor instead of boxes: `SensorContacts` turns
+one step's reports into what the one `CollisionCriterion` reads (one event per contact onset with an actor).
 """
 
 from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from dataclasses import dataclass
 
 import numpy as np
 
 from yawil.sim.carla.topology import StopLine
-from yawil.sim.types import Event, EventKind
 
 LIGHT_STATES = {"red": "red", "yellow": "yellow", "green": "green", "off": "green", "unknown": "green"}
 
@@ -27,22 +27,14 @@ def collision_kind(type_id: str) -> str:
     return "static"
 
 
-class SensorCollisionCriterion:
-    """A collision event when the ego starts touching an actor it did not touch on the previous step."""
+@dataclass(frozen=True)
+class SensorContacts:
+    """One step's collision-sensor reports: (other actor id, its type_id) each (a `criteria.Contacts`)."""
 
-    def __init__(self) -> None:
-        self._touching: set[tuple[str, int]] = set()
+    hits: Sequence[tuple[int, str]]
 
-    def reset(self) -> None:
-        self._touching = set()
-
-    def update(self, time: float, x: float, y: float, hits: Sequence[tuple[int, str]]) -> list[Event]:
-        """`hits`: (other actor id, its type_id) of each collision-sensor report of this step."""
-        now = {(collision_kind(type_id), int(oid)) for oid, type_id in hits}
-        events = [Event(EventKind.COLLISION, time, x, y, other_id=None if kind == "static" else oid, other_type=kind)
-                  for kind, oid in sorted(now - self._touching)]
-        self._touching = now
-        return events
+    def touching(self) -> set[tuple[str, int]]:
+        return {(collision_kind(type_id), int(oid)) for oid, type_id in self.hits}
 
 
 def classify_region(on_road: bool, is_junction: bool, road_id: int, lane_id: int, lane_yaw: float, ego_yaw: float,

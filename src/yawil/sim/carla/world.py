@@ -36,22 +36,14 @@ from yawil.sim.carla.convert import (
 )
 from yawil.sim.carla.errors import START_HINT, CarlaSetupError, SimulatorError
 from yawil.sim.carla.infractions import (
-    SensorCollisionCriterion,
+    SensorContacts,
     classify_region,
     light_state_name,
     stop_line_arrays,
 )
 from yawil.sim.carla.topology import CarlaRoute, CarlaTopology
 from yawil.sim.carla.weather import carla_weather
-from yawil.sim.criteria import (
-    DistanceDrivenCriterion,
-    GoalCriterion,
-    LaneInvasionCriterion,
-    RedLightCriterion,
-    RouteProgressCriterion,
-    TimeoutCriterion,
-    nocrash_timeout,
-)
+from yawil.sim.judge import EpisodeJudge
 from yawil.sim.types import (
     COMMAND_LOOKAHEAD,
     DT,
@@ -59,15 +51,14 @@ from yawil.sim.types import (
     AgentState,
     Control,
     Event,
-    EventKind,
     LightState,
     Observation,
     Pose,
     Privileged,
     RoadOption,
     Scenario,
+    validate_scenario,
 )
-from yawil.sim.weather import get_weather
 
 EGO_BLUEPRINT = "vehicle.lincoln.mkz_2017"
 SPAWN_CLEARANCE = 15.0  # metres between the ego's start and any vehicle spawn point
@@ -87,22 +78,8 @@ def carla_town(name: str) -> str:
 
 
 def check_scenario(sc: Scenario) -> str:
-    """Validates a scenario for CARLA; returns CARLA's map name."""
-    if not isinstance(sc, Scenario):
-        raise ValueError(f"reset needs a Scenario, got {type(sc).__name__}")
-    get_weather(sc.weather)
-    for name in ("vehicles", "pedestrians"):
-        n = getattr(sc, name)
-        if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 0:
-            raise ValueError(f"Scenario.{name} must be a non-negative integer, got {n!r}")
-    if sc.timeout_s is not None and (isinstance(sc.timeout_s, bool) or not isinstance(sc.timeout_s, (int, float))
-                                     or not math.isfinite(sc.timeout_s) or sc.timeout_s <= 0):
-        raise ValueError(f"Scenario.timeout_s must be a positive number of seconds or None, got {sc.timeout_s!r}")
-    for name in ("start", "goal"):
-        p = getattr(sc, name)
-        if p is not None and not (isinstance(p, Pose) and all(math.isfinite(v) for v in (p.x, p.y, p.yaw))):
-            raise ValueError(f"Scenario.{name} must be a Pose with finite values or None, got {p!r}")
-    return carla_town(sc.town)
+    """Validates a scenario for CARLA (`validate_scenario`, then the map name); returns CARLA's map name."""
+    return carla_town(validate_scenario(sc).town)
 
 
 class CarlaWorld:
@@ -213,7 +190,7 @@ class CarlaWorld:
             self._tick()
             self._walkers_go(r_ped)
             self._prev_xy = (self._pose.x, self._pose.y)
-            self.c_lane.reset(self._region())
+            self.judge.start(self._pose.x, self._pose.y, self._pose.yaw, self._region(0))
             self._drain_collisions()
             return self._observe(())
 
@@ -230,6 +207,15 @@ class CarlaWorld:
             self.frame += 1
             events = self._criteria()
             return self._observe(tuple(events))
+
+    @property
+    def timeout_s(self) -> float:
+        """The episode's time budget (the scenario's, or NoCrash's for the route)."""
+        return self.judge.timeout_s
+
+    @property
+    def done(self) -> bool:
+        return self.judge.done
 
     def close(self) -> None:
         """Destroy our actors and give the server back its settings (asynchronous mode, as we found it)."""
@@ -386,16 +372,7 @@ class CarlaWorld:
             ctrl.set_max_speed(float(rng.uniform(1.0, 1.6)))
 
     def _setup_criteria(self, planned: CarlaRoute, sc: Scenario) -> None:
-        route = planned.route
-        self.c_collision = SensorCollisionCriterion()
-        self.c_lane = LaneInvasionCriterion()
-        self.c_light = RedLightCriterion(*stop_line_arrays(self.topology.stops))
-        self.c_progress = RouteProgressCriterion(route.xy)
-        self.c_distance = DistanceDrivenCriterion()
-        self.c_goal = GoalCriterion(route.xy)
-        self.timeout_s = float(sc.timeout_s) if sc.timeout_s is not None else nocrash_timeout(route.length)
-        self.c_timeout = TimeoutCriterion(self.timeout_s)
-        self.done = False
+        self.judge = EpisodeJudge(planned.route, stop_line_arrays(self.topology.stops), sc)
         b = self.topology.bounds
         self.bounds = (b[0] - BOUNDS_MARGIN, b[1] - BOUNDS_MARGIN, b[2] + BOUNDS_MARGIN, b[3] + BOUNDS_MARGIN)
 
@@ -435,7 +412,8 @@ class CarlaWorld:
             self._hits = [h for h in self._hits if h[0] > self._server_frame]
         return hits
 
-    def _region(self) -> str:
+    def _region(self, route_index: int) -> str:
+        """Where the ego is (LaneInvasionCriterion.REGIONS), given its projection on the route."""
         import carla
 
         p = self._pose
@@ -450,7 +428,7 @@ class CarlaWorld:
         wp = self._map.get_waypoint(carla.Location(x=x, y=y, z=0.0), project_to_road=False, lane_type=driving)
         if wp is None:
             return "off_road"
-        i = self.c_progress.index
+        i = route_index
         return classify_region(True, bool(wp.is_junction), int(wp.road_id), int(wp.lane_id),
                                yaw_from_carla(wp.transform.rotation.yaw), p.yaw, int(self.planned.road[i]),
                                int(self.planned.lane[i]))
@@ -460,18 +438,11 @@ class CarlaWorld:
                 for s in self.topology.stops]
 
     def _criteria(self) -> list[Event]:
-        p, t = self._pose, self.time
-        prev = self._prev_xy
-        events = self.c_collision.update(t, p.x, p.y, self._drain_collisions())
-        self.c_progress.update(p.x, p.y)
-        events += self.c_lane.update(t, p.x, p.y, self._region())
-        events += self.c_light.update(t, prev, (p.x, p.y), p.yaw, self._light_names())
-        self.c_distance.update(prev, (p.x, p.y))
-        events += self.c_goal.update(t, p.x, p.y, self.c_progress.index)
-        events += self.c_timeout.update(t, p.x, p.y)
+        p = self._pose
+        contacts = SensorContacts(tuple(self._drain_collisions()))
+        events = self.judge.update(self.time, p.x, p.y, p.yaw, self._prev_xy, contacts, self._region,
+                                   self._light_names())
         self._prev_xy = (p.x, p.y)
-        if any(e.kind in (EventKind.GOAL_REACHED, EventKind.TIMEOUT) for e in events):
-            self.done = True
         return events
 
     def _privileged(self, idx: int) -> Privileged:
@@ -508,12 +479,12 @@ class CarlaWorld:
 
     def _observe(self, events: tuple[Event, ...]) -> Observation:
         assert self.scenario is not None
-        idx = self.c_progress.index
+        idx = self.judge.progress.index
         command = RoadOption(int(self.route.options[min(idx + COMMAND_LOOKAHEAD, len(self.route) - 1)]))
         image = observation_image(self._image) if self._image is not None else None
         return Observation(
             image=image, speed=self._speed, pose=self._pose, route=self.route, route_index=idx, command=command,
-            events=events, time=self.time, frame=self.frame, done=self.done, distance_driven=self.c_distance.total,
+            events=events, time=self.time, frame=self.frame, done=self.done, distance_driven=self.judge.distance.total,
             town=self.scenario.town, bounds=self.bounds, weather=self.scenario.weather, privileged=self._privileged(idx),
         )
 

@@ -13,16 +13,8 @@ from typing import Any
 
 import numpy as np
 
-from yawil.sim.criteria import (
-    CollisionCriterion,
-    DistanceDrivenCriterion,
-    GoalCriterion,
-    LaneInvasionCriterion,
-    RedLightCriterion,
-    RouteProgressCriterion,
-    TimeoutCriterion,
-    nocrash_timeout,
-)
+from yawil.sim.criteria import BoxContacts
+from yawil.sim.judge import EpisodeJudge
 from yawil.sim.town.dynamics import EgoState, VehicleParams, step_bicycle
 from yawil.sim.town.geometry import ActorView
 from yawil.sim.town.lights import STATE_NAMES, TrafficLights
@@ -38,38 +30,17 @@ from yawil.sim.types import (
     AgentState,
     Control,
     Event,
-    EventKind,
     LightState,
     Observation,
-    Pose,
     Privileged,
     RoadOption,
     Scenario,
+    validate_scenario,
 )
-from yawil.sim.weather import get_weather
 
 EGO_ID = 0
 EGO_COLOR = (0.15, 0.35, 0.75)
 EGO_COMMIT_S = 2.0  # s: traffic treats the ego as in the junction it will reach within this time
-
-
-def _check_scenario(sc: Scenario) -> None:
-    if not isinstance(sc, Scenario):
-        raise ValueError(f"reset needs a Scenario, got {type(sc).__name__}")
-    get_weather(sc.weather)
-    for name in ("vehicles", "pedestrians"):
-        n = getattr(sc, name)
-        if isinstance(n, bool) or not isinstance(n, (int, np.integer)) or n < 0:
-            raise ValueError(f"Scenario.{name} must be a non-negative integer, got {n!r}")
-    if sc.timeout_s is not None and (not isinstance(sc.timeout_s, (int, float)) or not math.isfinite(sc.timeout_s)
-                                     or sc.timeout_s <= 0):
-        raise ValueError(f"Scenario.timeout_s must be a positive number of seconds or None, got {sc.timeout_s!r}")
-    if not isinstance(sc.min_route_length, (int, float)) or not 0 <= sc.min_route_length < 1e5:
-        raise ValueError(f"Scenario.min_route_length must be a non-negative number of metres, got {sc.min_route_length!r}")
-    for name in ("start", "goal"):
-        p = getattr(sc, name)
-        if p is not None and not (isinstance(p, Pose) and all(math.isfinite(v) for v in (p.x, p.y, p.yaw))):
-            raise ValueError(f"Scenario.{name} must be a Pose with finite values or None, got {p!r}")
 
 
 class EmbeddedWorld:
@@ -86,7 +57,7 @@ class EmbeddedWorld:
 
     # ---------------------------------------------------------------- episode
     def reset(self, scenario: Scenario, seed: int) -> Observation:
-        _check_scenario(scenario)
+        validate_scenario(scenario)
         if isinstance(seed, bool) or not isinstance(seed, (int, np.integer)) or seed < 0:
             raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
         town = get_town(scenario.town)
@@ -109,16 +80,9 @@ class EmbeddedWorld:
         self.pedestrians = Pedestrians(town.walkways)
         self.pedestrians.spawn(int(scenario.pedestrians), r_ped, keep_out=[(self.ego.x, self.ego.y, 4.0)])
         aps = town.lanes.approaches
-        self.c_collision = CollisionCriterion()
-        self.c_lane = LaneInvasionCriterion()
-        self.c_light = RedLightCriterion(np.array([a.light for a in aps], dtype=np.int64),
-                                         np.array([a.centre_xy for a in aps]), np.array([a.kerb_xy for a in aps]),
-                                         np.array([a.yaw for a in aps]))
-        self.c_progress = RouteProgressCriterion(route.xy)
-        self.c_distance = DistanceDrivenCriterion()
-        self.c_goal = GoalCriterion(route.xy)
-        self.timeout_s = float(scenario.timeout_s) if scenario.timeout_s is not None else nocrash_timeout(route.length)
-        self.c_timeout = TimeoutCriterion(self.timeout_s)
+        self.judge = EpisodeJudge(route, (np.array([a.light for a in aps], dtype=np.int64),
+                                          np.array([a.centre_xy for a in aps]), np.array([a.kerb_xy for a in aps]),
+                                          np.array([a.yaw for a in aps])), scenario)
         self._light_objs = [[LightState(a.light, name, a.stop_xy[0], a.stop_xy[1], a.yaw) for name in STATE_NAMES]
                             for a in aps]
         self._road_yaw = np.array([ln.evaluate(np.array([0.0]))[1][0] for ln in town.lanes.lanes])
@@ -127,9 +91,8 @@ class EmbeddedWorld:
         self._lights_tuple: tuple[LightState, ...] = ()
         self._names_key: bytes = b""
         self._names: list[str] = []
-        self.c_lane.reset(self._ego_region())
+        self.judge.start(self.ego.x, self.ego.y, self.ego.yaw, self._ego_region())
         self.events: tuple[Event, ...] = ()
-        self.done = False
         if scenario.camera:
             self._ensure_renderer()
         return self._observe(())
@@ -156,6 +119,15 @@ class EmbeddedWorld:
         self.pedestrians.step(DT, self._rng, actors)
         events = self._criteria(prev)
         return self._observe(tuple(events))
+
+    @property
+    def timeout_s(self) -> float:
+        """The episode's time budget (the scenario's, or NoCrash's for the route)."""
+        return self.judge.timeout_s
+
+    @property
+    def done(self) -> bool:
+        return self.judge.done
 
     def close(self) -> None:
         if self._renderer is not None:
@@ -213,7 +185,7 @@ class EmbeddedWorld:
         """
         lane, s = self._ego_road_lane()
         lanes = self.planned.lanes
-        i = self.c_progress.index
+        i = self.judge.progress.index
         if lane < 0 or int(lanes[i]) != lane or self.town is None:
             return (-1, False)
         later = np.flatnonzero(lanes[i:] != lane)
@@ -273,7 +245,6 @@ class EmbeddedWorld:
     def _criteria(self, prev: tuple[float, float]) -> list[Event]:
         assert self.town is not None
         ex, ey, t = self.ego.x, self.ego.y, self.time
-        events: list[Event] = []
         veh, ped, town = self.vehicles, self.pedestrians, self.town
         boxes, ids, types = [], [], []
         # candidates: bounding circles that reach the ego's (exact: the box test would reject the others)
@@ -300,21 +271,14 @@ class EmbeddedWorld:
             ids.append(near)
             types += ["static"] * len(near)
         if boxes:
-            events += self.c_collision.update(t, self.ego_box(), np.concatenate(boxes), np.concatenate(ids), types)
+            contacts = BoxContacts(self.ego_box(), np.concatenate(boxes), np.concatenate(ids), types)
         else:
-            events += self.c_collision.update(t, self.ego_box(), np.zeros((0, 5)), np.zeros(0, dtype=np.int64), [])
-        events += self.c_lane.update(t, ex, ey, self._ego_region())
+            contacts = BoxContacts(self.ego_box(), np.zeros((0, 5)), np.zeros(0, dtype=np.int64), [])
         key = self.lights.codes.tobytes()
         if key != self._names_key:  # the names change a few times a minute; rebuilding them each step cost
             self._names_key, self._names = key, [STATE_NAMES[int(c)] for c in self.lights.codes]
-        events += self.c_light.update(t, prev, (ex, ey), self.ego.yaw, self._names)
-        self.c_progress.update(ex, ey)
-        self.c_distance.update(prev, (ex, ey))
-        events += self.c_goal.update(t, ex, ey, self.c_progress.index)
-        events += self.c_timeout.update(t, ex, ey)
-        if any(e.kind in (EventKind.GOAL_REACHED, EventKind.TIMEOUT) for e in events):
-            self.done = True
-        return events
+        return self.judge.update(t, ex, ey, self.ego.yaw, prev, contacts, lambda _index: self._ego_region(),
+                                 self._names)
 
     def actor_views(self, radius: float = 120.0) -> list[ActorView]:
         """Vehicles and pedestrians near the ego, as the renderers want them."""
@@ -363,7 +327,7 @@ class EmbeddedWorld:
     def _observe(self, events: tuple[Event, ...]) -> Observation:
         assert self.town is not None and self.scenario is not None
         self.events = events
-        idx = self.c_progress.index
+        idx = self.judge.progress.index
         n = len(self.route)
         command = RoadOption(int(self.route.options[min(idx + COMMAND_LOOKAHEAD, n - 1)]))
         image = None
@@ -382,7 +346,7 @@ class EmbeddedWorld:
             time=self.time,
             frame=self.frame,
             done=self.done,
-            distance_driven=self.c_distance.total,
+            distance_driven=self.judge.distance.total,
             town=self.town.name,
             bounds=self.town.geometry.bounds,
             weather=self.scenario.weather,

@@ -201,3 +201,15 @@ def test_cli_report(tmp_path: Path, capsys) -> None:  # type: ignore[no-untyped-
     assert main(["report", str(a), "--out", str(tmp_path / "r"), "--trajectory", "training=regular/1/0"]) == 0
     assert "Nav. (Regular)" in capsys.readouterr().out
     assert (tmp_path / "r" / "report.html").exists()
+
+
+def test_trajectory_episode_names_its_weather() -> None:
+    """Every route is driven in every weather: the plotted episode is one weather's, chosen or the first."""
+    from yawil.bench.report import HARDEST_FIRST, choose_episodes
+    from yawil.bench.suites import TASKS
+
+    assert set(HARDEST_FIRST) == set(TASKS)  # a folder of any task gets its trajectory plot
+    assert choose_episodes([], "training", "dense/WetNoon/3/0") == ("dense", "WetNoon", 3, 0)
+    assert choose_episodes([], "training", "dense/3/0") == ("dense", None, 3, 0)
+    with pytest.raises(ValueError, match="task/weather/route/seed"):
+        choose_episodes([], "training", "dense/3")

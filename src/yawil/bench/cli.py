@@ -108,7 +108,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     )
     p.add_argument("--record", action="store_true", help="save a video per episode (camera + bird's-eye) in OUT/videos")
     p.add_argument("--yaw-noise-deg", type=float, default=0.0, help="Gaussian noise sigma on guidance yaw (degrees)")
-    p.add_argument("--command-noise-p", type=float, default=0.0, help="probability of a 5-frame wrong command")
+    p.add_argument("--command-noise-p", type=float, default=0.0,
+                   help="wrong-command noise level p, read as --command-noise says (bursts of 5 frames)")
     p.add_argument("--yaw-noise", default="raw", choices=("raw", "independent"),
                    help="reading of --yaw-noise-deg: raw (default) on the route headings before the reference is "
                         "subtracted; independent: on each guidance component after it")

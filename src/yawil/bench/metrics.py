@@ -2,7 +2,7 @@
 
 One protocol for every agent (docs/benchmark.md): success = the goal reached by `yawil.sim.criteria.goal_reached`
 (the rule the worlds also use) before the timeout with no collision of any kind; an episode ends at success,
-timeout or the first collision.
+timeout, the first collision, or `blocked` (BLOCKED_S without route progress).
 Violations are counted over successful episodes only, as the paper does. Standard deviations are population
 standard deviations (ddof=0): the paper's own figures (66.67 +- 0.94 over 3 runs, 31.6 +- 0.49 over 5) are
 reproduced by that choice and not by ddof=1.
@@ -71,8 +71,8 @@ def collision_reason(other_type: str | None) -> str:
 class EpisodeTracker:
     """Judges one episode from its observations; `update` returns True once the episode is over.
 
-    The tracker, not the world, decides the end: goal distance, the protocol's timeout and collisions are
-    checked here so that every backend is judged by the same rules.
+    The tracker, not the world, decides the end: goal distance, the protocol's timeout, collisions and the
+    blocked rule are checked here so that every backend is judged by the same rules.
     """
 
     goal_xy: tuple[float, float]

@@ -22,9 +22,15 @@ KEY_FIELDS: tuple[str, ...] = ("task", "condition", "weather", "route_id", "seed
 # are refused, by `yawil bench` on resume and by `yawil report` (docs/benchmark.md, "Protocol versions"): their
 # figures do not mean the same thing, and a report that mixed them would not say so.
 PROTOCOL = 2
-_OLD_PROTOCOL = ("written under benchmark protocol {v} (each route in one weather, one timeout for every task, no "
-                 "'blocked' end); this yawil drives and reports protocol " + str(PROTOCOL) +
-                 " (docs/benchmark.md, 'Protocol versions'): drive it again into a new folder")
+_PROTOCOLS = {1: "each route in one weather, one timeout for every task, no 'blocked' end"}
+
+
+def _other_protocol(version: Any) -> str:
+    what = _PROTOCOLS.get(version, "a version this yawil does not know") if isinstance(version, int) else "unknown"
+    return (f"written under benchmark protocol {version} ({what}); this yawil drives and reports protocol "
+            f"{PROTOCOL} (docs/benchmark.md, 'Protocol versions'): drive the agent again into a new folder "
+            "(for `yawil experiment` and `reproduce`: remove the experiment's results/ and noise/ folders; its "
+            "data and models are reused)")
 
 
 def episode_key(rec: Mapping[str, Any]) -> str:
@@ -145,7 +151,7 @@ def check_run_info(folder: str | Path, info: Mapping[str, Any], label_given: boo
         except ValueError as err:
             raise ValueError(f"{path}: not valid JSON ({err})") from None
         if old.get("protocol", 1) != PROTOCOL:
-            raise ValueError(f"{path}: results {_OLD_PROTOCOL.format(v=old.get('protocol', 1))}")
+            raise ValueError(f"{path}: results {_other_protocol(old.get('protocol', 1))}")
         keys = ["agent", "agent_options"] + (["label"] if label_given else [])
         for key in keys:
             if old.get(key) != info.get(key):
@@ -188,7 +194,7 @@ def _is_num(v: Any) -> bool:
 def check_record(rec: Mapping[str, Any], where: str) -> None:
     """ValueError naming the record and field when a record cannot be counted as written."""
     if rec.get("protocol", 1) != PROTOCOL:
-        raise ValueError(f"{where}: {_OLD_PROTOCOL.format(v=rec.get('protocol', 1))}")
+        raise ValueError(f"{where}: {_other_protocol(rec.get('protocol', 1))}")
     for name, (want, ok) in _REPORT_FIELDS.items():
         if name not in rec:
             raise ValueError(f"{where}: field {name!r} is missing (expected {want})")

@@ -270,21 +270,30 @@ def success_plot(sets: Sequence[ResultSet]) -> bytes:
     return _png(fig)
 
 
-def choose_episodes(sets: Sequence[ResultSet], condition: str, spec: str | None) -> tuple[str, int, int] | None:
-    """(task, route id, seed) to draw: `spec` as 'task/route/seed', else route 0 seed 0 of the hardest task run."""
+# The default episode of the trajectory plot: route 0, seed 0 of the hardest task that was run.
+HARDEST_FIRST: tuple[str, ...] = ("nocrash_dense", "dense", "nocrash_regular", "regular", "nav_dynamic",
+                                  "navigation", "empty", "one_turn", "straight", "square")
+
+
+def choose_episodes(sets: Sequence[ResultSet], condition: str,
+                    spec: str | None) -> tuple[str, str | None, int, int] | None:
+    """(task, weather, route id, seed) to draw: `spec` as 'task/route/seed' (the condition's first weather
+    driven) or 'task/weather/route/seed', else the first weather, route and seed of the hardest task run."""
     if spec:
         parts = spec.split("/")
-        if len(parts) != 3:
-            raise ValueError(f"--trajectory {spec!r}: expected task/route/seed, e.g. dense/3/0")
+        if len(parts) not in (3, 4):
+            raise ValueError(f"--trajectory {spec!r}: expected task/route/seed or task/weather/route/seed, "
+                             "e.g. dense/3/0 or dense/WetCloudyNoon/3/0")
         try:
-            return parts[0], int(parts[1]), int(parts[2])
+            rid, seed = int(parts[-2]), int(parts[-1])
         except ValueError:
             raise ValueError(f"--trajectory {spec!r}: route and seed must be integers") from None
-    for t in ("dense", "regular", "navigation", "one_turn", "straight", "square"):
+        return parts[0], (parts[1] if len(parts) == 4 else None), rid, seed
+    for t in HARDEST_FIRST:
         for rs in sets:
             hits = sorted((r["route_id"], r["seed"]) for r in rs.select(t, condition) if r.get("trajectory"))
             if hits:
-                return t, hits[0][0], hits[0][1]
+                return t, None, hits[0][0], hits[0][1]
     return None
 
 
@@ -297,13 +306,17 @@ def trajectory_plot(sets: Sequence[ResultSet], condition: str, spec: str | None 
     chosen = choose_episodes(sets, condition, spec)
     if chosen is None:
         return None
-    task, rid, seed = chosen
+    task, weather, rid, seed = chosen
     recs = [
         (rs.label, r)
         for rs in sets
         for r in rs.select(task, condition)
         if r["route_id"] == rid and r["seed"] == seed and r.get("trajectory")
     ]
+    if weather is None and recs:  # one weather: the condition's first that was driven
+        order = CONDITIONS[condition].weathers
+        weather = min((r["weather"] for _, r in recs), key=lambda w: order.index(w) if w in order else len(order))
+    recs = [(label, r) for label, r in recs if r["weather"] == weather]
     if not recs:
         return None
     town = CONDITIONS[condition].town
@@ -319,7 +332,8 @@ def trajectory_plot(sets: Sequence[ResultSet], condition: str, spec: str | None 
         xs, ys = zip(*r["trajectory"], strict=True)
         ok = "success" if r["success"] else r.get("reason")
         ax.plot(xs, ys, lw=1.8, label=f"{label} ({ok})", zorder=6)
-    ax.set_title(f"{CONDITIONS[condition].title}: {TASKS[task].title}, route {rid}, seed {seed}", fontsize=9)
+    ax.set_title(f"{CONDITIONS[condition].title}: {TASKS[task].title}, route {rid}, {weather}, seed {seed}",
+                 fontsize=9)
     ax.legend(fontsize=7, loc="best")
     return _png(fig)
 

@@ -19,9 +19,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         "--trajectory",
         action="append",
         default=[],
-        metavar="CONDITION=TASK/ROUTE/SEED",
-        help="episode whose trajectories are drawn for a condition, e.g. new-town-weather=dense/3/0 "
-        "(default: route 0, seed 0 of the hardest task run)",
+        metavar="CONDITION=TASK/[WEATHER/]ROUTE/SEED",
+        help="episode whose trajectories are drawn for a condition, e.g. new-town-weather=dense/3/0 or "
+        "new-town-weather=dense/SoftRainSunset/3/0 (default weather: the condition's first driven; default "
+        "episode: route 0, seed 0 of the hardest task run)",
     )
     return p
 

@@ -125,6 +125,14 @@ def test_bad_agent_and_workers(tmp_path: Path) -> None:
     assert AgentSpec("a", yaw_noise_deg=10, yaw_noise_mode="independent").options() == {
         "yaw_noise_deg": 10, "command_noise_p": 0.0, "yaw_noise_mode": "independent"}
     assert AgentSpec("a", yaw_noise_mode="independent").options() == {"yaw_noise_deg": 0.0, "command_noise_p": 0.0}
+    # the expert's settings: named in the options (a resume cannot mix experts), for the expert only
+    spec = AgentSpec("expert", expert_args=("comfort_decel=1.5",)).validate()
+    assert spec.options()["expert"] == {"comfort_decel": 1.5}
+    assert spec.build(0).config.comfort_decel == 1.5  # type: ignore[attr-defined]
+    with pytest.raises(ValueError, match="unknown expert setting"):
+        AgentSpec("expert", expert_args=("nope=1",)).validate()
+    with pytest.raises(ValueError, match="--agent expert only"):
+        AgentSpec(str(tmp_path / "x.pt"), expert_args=("comfort_decel=1.5",)).validate()
 
 
 def test_the_eval100_preset_is_the_fixed_recipe_comparison_set() -> None:

@@ -229,6 +229,21 @@ def test_bad_config_is_an_error() -> None:
         ExpertConfig(kp=float("nan"))
 
 
+def test_config_from_command_line_items() -> None:
+    cfg = ExpertConfig.from_items(["comfort_decel=1.5", "vehicle_gap=3"])
+    assert (cfg.comfort_decel, cfg.vehicle_gap, cfg.kp) == (1.5, 3.0, ExpertConfig().kp)
+    assert cfg.changes() == {"comfort_decel": 1.5, "vehicle_gap": 3.0}
+    assert ExpertConfig.from_items([]) == ExpertConfig() and ExpertConfig().changes() == {}
+    with pytest.raises(ValueError, match="unknown expert setting 'brake'"):
+        ExpertConfig.from_items(["brake=1"])
+    with pytest.raises(ValueError, match="expected KEY=VALUE"):
+        ExpertConfig.from_items(["comfort_decel"])
+    with pytest.raises(ValueError, match="expected a number"):
+        ExpertConfig.from_items(["comfort_decel=soft"])
+    with pytest.raises(ValueError, match="comfort_decel"):
+        ExpertConfig.from_items(["comfort_decel=0"])
+
+
 # ---------------------------------------------------------------------------------------- closed loop
 
 

@@ -64,6 +64,7 @@ class DaggerConfig:
     round0: str | None = None  # an existing round-0 checkpoint (then expert_data must be its data)
     expert_data: str | None = None  # an existing expert dataset instead of collecting one
     speed_control: bool = False  # the learner drives throttle and brake from its aux head's target speed (as benched)
+    expert_args: dict[str, float] = field(default_factory=dict)  # ExpertConfig settings of the expert (labels, takeovers)
 
     def __post_init__(self) -> None:
         def need(ok: bool, name: str, want: str) -> None:
@@ -81,9 +82,16 @@ class DaggerConfig:
         need(self.lr > 0 and math.isfinite(self.lr), "lr", "a number > 0")
         need(isinstance(self.train_args, dict), "train_args", "a mapping of train settings")
         need(isinstance(self.speed_control, bool), "speed_control", "true or false")
+        need(isinstance(self.expert_args, dict), "expert_args", "a mapping of ExpertConfig settings")
+        self.expert_config()  # an unknown or invalid expert setting fails here
         aux = (self.train_args.get("model_args") or {}).get("aux") is True
         need(not self.speed_control or aux or self.round0 is not None, "speed_control",
              "a model with an aux head (--train-arg 'model_args={\"aux\": true}' --train-arg aux_weight=...)")
+
+    def expert_config(self) -> Any:
+        from yawil.expert import ExpertConfig
+
+        return ExpertConfig.from_items([f"{k}={v}" for k, v in self.expert_args.items()], "--expert-arg")
 
     def beta_of(self, r: int) -> float:
         return float(self.beta[min(r, len(self.beta)) - 1])
@@ -191,7 +199,7 @@ class DaggerRun:
 
         s = collect(self.expert_data(), town=self.cfg.town, weathers="train", frames=self.cfg.expert_frames,
                     workers=self.cfg.workers, seed=self.cfg.seed, progress=self.progress, desc="round 0",
-                    max_episode_frames=self.cfg.episode_frames)
+                    max_episode_frames=self.cfg.episode_frames, expert_config=self.cfg.expert_config())
         return {"frames": s.dataset_frames, "episodes": s.episodes_written + s.episodes_skipped}
 
     def collect_round(self, r: int) -> dict[str, Any]:
@@ -209,7 +217,8 @@ class DaggerRun:
         # No steering noise (the learner makes its own mistakes); the second before a collision is not a label.
         s = collect(self.round_data(r), town=cfg.town, weathers="train", frames=cfg.round_frames, workers=cfg.workers,
                     seed=cfg.seed + ROUND_SEED_STRIDE * r, progress=self.progress, learner=learner, desc=f"round {r}",
-                    noise_fraction=0.0, trim_seconds=1.0, max_episode_frames=cfg.episode_frames)
+                    noise_fraction=0.0, trim_seconds=1.0, max_episode_frames=cfg.episode_frames,
+                    expert_config=cfg.expert_config())
         self.log(f"round {r}: {s.frames_written} frames stored this run; frames driven by "
                  f"{json.dumps(s.drivers)}; {s.takeovers} takeovers; outcomes {json.dumps(s.outcomes)}")
         return {"frames": s.dataset_frames, "drivers": s.drivers, "takeovers": s.takeovers, "outcomes": s.outcomes,
@@ -273,6 +282,8 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--expert-data", default=None, help="use this expert dataset as round 0's data")
     p.add_argument("--speed-control", action="store_true",
                    help="the learner drives throttle and brake through its aux head's target speed (bench --speed-control)")
+    p.add_argument("--expert-arg", action="append", default=[], metavar="KEY=VALUE",
+                   help="a setting of the expert's ExpertConfig for its data, labels and takeovers (as yawil collect)")
     p.add_argument("--no-progress", action="store_true")
     return p
 
@@ -282,6 +293,13 @@ def _floats(text: str, option: str) -> tuple[float, ...]:
         return tuple(float(v) for v in text.split(",") if v.strip())
     except ValueError:
         raise ValueError(f"{option}: expected comma-separated numbers, got {text!r}") from None
+
+
+def _expert_args(items: Sequence[str]) -> dict[str, float]:
+    from yawil.expert import ExpertConfig
+
+    ExpertConfig.from_items(items)  # one line naming the bad item
+    return {k: float(v) for k, _, v in (item.partition("=") for item in items)}
 
 
 def _train_args(items: Sequence[str]) -> dict[str, Any]:
@@ -306,6 +324,7 @@ def run(args: argparse.Namespace) -> int:
             takeover_stall=args.takeover_stall, takeover_seconds=args.takeover_seconds, batch_size=args.batch_size,
             lr=args.lr, workers=args.workers, threads=args.threads, train_args=_train_args(args.train_arg),
             round0=args.round0, expert_data=args.expert_data, speed_control=args.speed_control,
+            expert_args=_expert_args(args.expert_arg),
         )
         from yawil.train import TrainConfig
 

@@ -16,7 +16,8 @@ needs the backend-neutral types of `yawil.sim.types`, so it drives any backend.
 from __future__ import annotations
 
 import math
-from dataclasses import asdict, dataclass, field
+from collections.abc import Sequence
+from dataclasses import asdict, dataclass, field, fields
 from typing import Any
 
 import numpy as np
@@ -95,6 +96,28 @@ class ExpertConfig:
 
     def to_dict(self) -> dict[str, float]:
         return {k: float(v) for k, v in asdict(self).items()}
+
+    @classmethod
+    def from_items(cls, items: Sequence[str], option: str = "--expert-arg") -> ExpertConfig:
+        """`["comfort_decel=1.5", ...]` (command-line KEY=VALUE items) -> a config; the rest keep their defaults."""
+        known = {f.name for f in fields(cls)}
+        values: dict[str, float] = {}
+        for item in items:
+            key, sep, text = item.partition("=")
+            if not sep or not key:
+                raise ValueError(f"{option}: expected KEY=VALUE, got {item!r}")
+            if key not in known:
+                raise ValueError(f"{option} {item!r}: unknown expert setting {key!r}; known: {', '.join(sorted(known))}")
+            try:
+                values[key] = float(text)
+            except ValueError:
+                raise ValueError(f"{option} {item!r}: expected a number after '='") from None
+        return cls(**values)
+
+    def changes(self) -> dict[str, float]:
+        """The settings that differ from the defaults (what a record or a run's settings need to say)."""
+        base = ExpertConfig().to_dict()
+        return {k: v for k, v in self.to_dict().items() if v != base[k]}
 
 
 @dataclass(frozen=True)

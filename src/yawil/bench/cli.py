@@ -118,6 +118,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                         "quiet frame; frame-share: a share p of all frames is wrong, in 5-frame bursts")
     p.add_argument("--speed-control", action="store_true",
                    help="learned agents with an aux head: throttle and brake from its predicted target speed")
+    p.add_argument("--expert-arg", action="append", default=[], metavar="KEY=VALUE",
+                   help="--agent expert: a setting of its ExpertConfig (docs/expert.md), e.g. comfort_decel=1.5; "
+                        "repeat for more")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--backend", default="embedded", choices=("embedded", "carla"), help="simulator (default embedded)")
     p.add_argument("--host", default="localhost", help="--backend carla: server host (default localhost)")
@@ -185,7 +188,7 @@ def _run_suite(args: argparse.Namespace) -> int:
     from yawil.bench.suites import episodes
 
     spec = AgentSpec(args.agent, args.yaw_noise_deg, args.command_noise_p, args.speed_control,
-                     args.yaw_noise, args.command_noise).validate()
+                     args.yaw_noise, args.command_noise, tuple(args.expert_arg)).validate()
     factory = None
     if args.backend != "embedded":
         if args.workers != 1:

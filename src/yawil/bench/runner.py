@@ -46,6 +46,7 @@ class AgentSpec:
     speed_control: bool = False  # drive throttle and brake from the aux head's target speed (Agent's option)
     yaw_noise_mode: str = "raw"  # readings of the two noises (yawil.guidance.YAW_NOISE_MODES, COMMAND_NOISE_MODES)
     command_noise_mode: str = "burst-start"
+    expert_args: tuple[str, ...] = ()  # KEY=VALUE settings of the expert's ExpertConfig (`--expert-arg`)
 
     @property
     def is_expert(self) -> bool:
@@ -59,6 +60,10 @@ class AgentSpec:
             opts["command_noise_mode"] = self.command_noise_mode
         if self.speed_control:  # only when set, so the records of earlier runs still match
             opts["speed_control"] = True
+        if self.expert_args:  # the settings that differ from the default expert, by name
+            from yawil.expert import ExpertConfig
+
+            opts["expert"] = ExpertConfig.from_items(self.expert_args).changes()
         return opts
 
     def validate(self) -> AgentSpec:
@@ -66,6 +71,12 @@ class AgentSpec:
             raise ValueError(f"--agent {self.agent!r}: expected 'expert' or the path of a checkpoint file")
         if self.is_expert and (self.yaw_noise_deg or self.command_noise_p or self.speed_control):
             raise ValueError("noise and speed-control options apply to learned agents, not to the expert")
+        if self.expert_args and not self.is_expert:
+            raise ValueError("--expert-arg applies to --agent expert only")
+        if self.expert_args:
+            from yawil.expert import ExpertConfig
+
+            ExpertConfig.from_items(self.expert_args)  # an unknown or invalid setting fails before any episode
         from yawil.guidance import COMMAND_NOISE_MODES, YAW_NOISE_MODES
 
         if self.yaw_noise_mode not in YAW_NOISE_MODES or self.command_noise_mode not in COMMAND_NOISE_MODES:
@@ -98,9 +109,9 @@ class AgentSpec:
     def build(self, seed: int) -> DrivingAgent:
         """A fresh agent; learned agents get the episode's seed for their noise."""
         if self.is_expert:
-            from yawil.expert import Expert
+            from yawil.expert import Expert, ExpertConfig
 
-            return Expert()
+            return Expert(ExpertConfig.from_items(self.expert_args))
         from yawil.agent import Agent
 
         return Agent.from_checkpoint(  # type: ignore[no-any-return]

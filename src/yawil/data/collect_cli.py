@@ -69,6 +69,9 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--on-collision", choices=("trim", "keep", "discard"), default="trim",
                    help="trim: keep the episode without its last 2 s; keep: all frames; discard: drop the episode "
                    "(default trim)")
+    p.add_argument("--expert-arg", action="append", default=[], metavar="KEY=VALUE",
+                   help="a setting of the expert's ExpertConfig (docs/expert.md), e.g. comfort_decel=1.5; repeat for more "
+                        "(stored in the dataset's config, so a resume must give the same)")
     p.add_argument("--quiet", action="store_true", help="no progress bar")
     p.add_argument("--verify", action="store_true",
                    help="on resume, decode every stored image and re-collect the episodes that fail (a resume always "
@@ -83,9 +86,11 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     from yawil.data.collect import CollectConfig, collect
+    from yawil.expert import ExpertConfig
 
     if args.frames is None and args.episodes is None:
         args.frames = 200_000
+    expert = ExpertConfig.from_items(args.expert_arg)
     cfg = CollectConfig(
         vehicles=args.vehicles, pedestrians=args.pedestrians, min_route_length=args.min_route_length,
         noise_fraction=args.noise, noise_amplitude=args.noise_amplitude, straight_keep=args.straight_keep,
@@ -102,7 +107,7 @@ def run(args: argparse.Namespace) -> int:
     factory = world_factory(args.backend, **({} if args.backend == "embedded" else {"host": args.host, "port": args.port, "timeout": args.timeout}))
     summary = collect(args.out, verify=args.verify, town=args.town, weathers=args.weathers, frames=args.frames, episodes=args.episodes,
                       workers=args.workers, seed=args.seed, config=cfg, progress=not args.quiet,
-                      world_factory=factory)  # fmt: skip
+                      world_factory=factory, expert_config=expert)  # fmt: skip
     outcomes = ", ".join(f"{k} {v}" for k, v in sorted(summary.outcomes.items())) or "none"
     print(f"{summary.out}: wrote {summary.episodes_written} episodes, {summary.frames_written} frames in "
           f"{summary.seconds:.0f} s ({summary.frames_per_second:.1f} frames/s); skipped {summary.episodes_skipped} "

@@ -146,6 +146,9 @@ def test_dagger_config_is_checked() -> None:
     with pytest.raises(ValueError, match="aux head"):
         DaggerConfig(speed_control=True)  # the target speed comes from the aux head
     assert DaggerConfig(speed_control=True, train_args={"model_args": {"aux": True}, "aux_weight": 0.5}).speed_control
+    assert DaggerConfig(expert_args={"comfort_decel": 1.0}).expert_config().comfort_decel == 1.0
+    with pytest.raises(ValueError, match="unknown expert setting"):
+        DaggerConfig(expert_args={"softly": 1.0})
 
 
 def test_the_dagger_learner_drives_as_benched(tmp_path: Path) -> None:
@@ -225,6 +228,7 @@ def test_dagger_cli_refuses_bad_options_in_one_line(tmp_path: Path, capsys: pyte
         (["--train-arg", "nonsense=1"], "--train-arg"),
         (["--train-arg", "speed_dropout=2"], "speed_dropout"),
         (["--round0", str(tmp_path / "none.pt")], "round0"),
+        (["--expert-arg", "comfort_decel=soft"], "--expert-arg"),
     ):
         with pytest.raises(SystemExit) as err:
             main(["dagger", "--out", str(tmp_path / "o"), *argv])

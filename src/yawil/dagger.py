@@ -150,7 +150,7 @@ class DaggerRun:
     # the run
     def check_config(self) -> None:
         """A run folder belongs to one config: resuming with another would mix two experiments."""
-        from yawil.bench.records import write_json_atomic
+        from yawil.fileio import write_json_atomic
 
         path = self.out / "dagger.json"
         mine = self.cfg.to_dict()

@@ -9,12 +9,13 @@ Only the standard library is imported here: the CLI modules may use it without s
 from __future__ import annotations
 
 import contextlib
+import json
 import os
 import tempfile
 import threading
 from collections.abc import Iterator
 from pathlib import Path
-from typing import BinaryIO
+from typing import Any, BinaryIO
 
 _UMASK_LOCK = threading.Lock()
 
@@ -65,3 +66,9 @@ def write_atomic(path: str | os.PathLike[str], data: str | bytes) -> Path:
     with atomic_file(path) as f:
         f.write(data.encode("utf-8") if isinstance(data, str) else data)
     return Path(path)
+
+
+def write_json_atomic(path: str | os.PathLike[str], obj: Any) -> None:
+    """Write `obj` as indented JSON with sorted keys and a final newline, atomically (`write_atomic`): run
+    descriptions, stage markers, route files, tables' data."""
+    write_atomic(path, json.dumps(obj, indent=2, sort_keys=True) + "\n")

@@ -13,7 +13,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from yawil.bench.records import write_json_atomic
+from yawil.fileio import write_json_atomic
 
 
 def read_marker(path: Path) -> dict[str, Any] | None:

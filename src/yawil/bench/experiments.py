@@ -22,7 +22,8 @@ from pathlib import Path
 from typing import Any
 
 from yawil.bench.metrics import mean_std
-from yawil.bench.records import episode_key, iter_results, write_json_atomic
+from yawil.bench.records import episode_key, iter_results
+from yawil.fileio import write_json_atomic
 from yawil.stages import read_marker, write_marker
 
 METHODS: tuple[tuple[str, str], ...] = (

@@ -14,6 +14,8 @@ from collections.abc import Iterator, Mapping
 from pathlib import Path
 from typing import Any, TextIO
 
+from yawil.fileio import write_json_atomic
+
 EPISODES_FILE = "episodes.jsonl"
 RUN_FILE = "run.json"
 KEY_FIELDS: tuple[str, ...] = ("task", "condition", "weather", "route_id", "seed")
@@ -127,13 +129,6 @@ class EpisodeLog:
 
     def __exit__(self, *exc: object) -> None:
         self.close()
-
-
-def write_json_atomic(path: str | Path, obj: Any) -> None:
-    """Write JSON atomically (`yawil.fileio.write_atomic`)."""
-    from yawil.fileio import write_atomic
-
-    write_atomic(path, json.dumps(obj, indent=2, sort_keys=True) + "\n")
 
 
 def check_run_info(folder: str | Path, info: Mapping[str, Any], label_given: bool = False) -> None:

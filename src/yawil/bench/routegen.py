@@ -20,7 +20,6 @@ from typing import Any
 
 import numpy as np
 
-from yawil.bench.records import write_json_atomic
 from yawil.bench.suites import (
     MIN_LENGTH,
     ROUTE_FORMAT,
@@ -32,6 +31,7 @@ from yawil.bench.suites import (
     load_routes,
     route_file,
 )
+from yawil.fileio import write_json_atomic
 from yawil.sim.types import Pose, RoadOption, Route, wrap_angle
 
 LENGTH_TOLERANCE_M = 1.0  # a re-planned route may differ from the file by max(1 m, 1 %)

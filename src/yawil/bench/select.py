@@ -83,9 +83,10 @@ def candidate_label(path: Path) -> str:
 def select_checkpoint(checkpoints: Sequence[Path], out: Path, routes: int = 3, workers: int = 1,
                       progress: bool = True, speed_control: bool = False) -> dict[str, Any]:
     """Drive every candidate on the validation set (resumable per episode), write OUT/selection.json."""
-    from yawil.bench.records import read_records, write_json_atomic
+    from yawil.bench.records import read_records
     from yawil.bench.runner import AgentSpec, run_benchmark
     from yawil.checkpoint import load_checkpoint
+    from yawil.fileio import write_json_atomic
 
     if not checkpoints:
         raise ValueError("select: give at least one checkpoint")

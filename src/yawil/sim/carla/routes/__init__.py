@@ -24,6 +24,7 @@ from typing import Any
 
 import numpy as np
 
+from yawil.fileio import write_json_atomic
 from yawil.sim.carla.topology import CarlaTopology
 from yawil.sim.types import Pose, RoadOption, Route
 
@@ -177,7 +178,6 @@ def write_route_file(topo: CarlaTopology, town: str, seed: int = 0, folder: Path
 
     `source` says which map made the file (`topology_from_xodr`'s record, or a server's); it is stored as is.
     """
-    from yawil.bench.records import write_json_atomic
     from yawil.bench.suites import ROUTE_FORMAT, check_task_routes
 
     lists = generate_routes(topo, town, seed, per_task, max_attempts)

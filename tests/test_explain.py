@@ -10,7 +10,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 from hypothesis.extra.numpy import arrays
 
-from yawil import explain
+from yawil import explain, video
 
 
 def _image(h: int = 88, w: int = 200) -> np.ndarray:
@@ -69,9 +69,9 @@ def test_figures_and_video(tmp_path: Path) -> None:
     )
     fig = explain.frame_figure(item, path=tmp_path / "f.png")
     assert (tmp_path / "f.png").stat().st_size > 0
-    frames = [explain.figure_to_array(fig) for _ in range(5)]
+    frames = [video.figure_to_array(fig) for _ in range(5)]
     explain.grid_figure([item, item], path=tmp_path / "grid.png")
     assert (tmp_path / "grid.png").stat().st_size > 0
-    video = explain.write_video(frames, tmp_path / "ep.mp4", fps=5)
-    assert video.exists()
-    assert explain.read_video_frames(video) == 5
+    path = video.write_video(frames, tmp_path / "ep.mp4", fps=5)
+    assert path.exists()
+    assert video.read_video_frames(path) == 5

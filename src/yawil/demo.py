@@ -189,16 +189,16 @@ def run_demo(out: Path, budget: DemoBudget, seed: int = 0) -> Path:
     info = _done(out, "explain")
     if info is None:
         from yawil.agent import Agent
-        from yawil.explain_cli import explain_episode, explain_frames
+        from yawil.explain import EpisodeVideo, explain_episode, explain_frames
 
         t = time.perf_counter()
         _say("5/6 attention heat maps on dataset frames and one town02 episode video")
         agent = Agent.from_checkpoint(run_dir / "best.pt")
         explain_frames(agent, data, out / "explain", budget.explain_frames, seed, 0.5)
-        ep_args = argparse.Namespace(route="one_turn:0", condition="new-town-weather", town="town02",
-                                     weather="SoftRainSunset", vehicles=0, pedestrians=0, seed=seed,
-                                     steps=budget.video_steps, every=2, alpha=0.5)  # fmt: skip
-        video = explain_episode(agent, out / "explain", ep_args)
+        episode = EpisodeVideo(route="one_turn:0", condition="new-town-weather", town="town02",
+                               weather="SoftRainSunset", vehicles=0, pedestrians=0, seed=seed,
+                               steps=budget.video_steps, every=2)  # fmt: skip
+        video = explain_episode(agent, out / "explain", episode, alpha=0.5)
         info = {"seconds": time.perf_counter() - t, "video": video.name}
         _mark(out, "explain", info)
     timings["explain"] = info["seconds"]

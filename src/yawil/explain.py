@@ -3,7 +3,11 @@
 A map is a probability over the positions of one attention layer (YILRatt) or, for networks without
 attention (CILRS), the channel mean of |activation| of a ResNet layer normalised to sum to one. Either way
 it is upsampled to the camera image, coloured and blended over it with weight `alpha` (documented
-default 0.5: half image, half colour). Figures and videos are drawn with matplotlib and imageio.
+default 0.5: half image, half colour). Figures are drawn with matplotlib, videos written by `yawil.video`.
+
+The two jobs of `yawil explain` are plain functions here: `explain_frames` (figures of dataset frames and a
+grid, Figure 8) and `explain_episode` (a driven episode as a video, Figure 9; the episode is an
+`EpisodeVideo`). `yawil.explain_cli` only turns the command line into their arguments.
 """
 
 from __future__ import annotations
@@ -11,8 +15,13 @@ from __future__ import annotations
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import numpy as np
+
+if TYPE_CHECKING:
+    from yawil.agent import Agent
+    from yawil.sim.types import Control
 
 DEFAULT_ALPHA = 0.5  # weight of the colour map in the blend
 DEFAULT_CMAP = "jet"
@@ -146,63 +155,6 @@ def grid_figure(items: Sequence[Explained], alpha: float = DEFAULT_ALPHA, path: 
     return fig
 
 
-def figure_to_array(fig) -> np.ndarray:  # type: ignore[no-untyped-def]
-    """RGB uint8 pixels of a drawn matplotlib figure (for video frames).
-
-    A bare `matplotlib.figure.Figure` (the bird's-eye map) has a FigureCanvasBase that cannot render:
-    it gets an Agg canvas here, as pyplot would give it.
-    """
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-
-    if not isinstance(fig.canvas, FigureCanvasAgg):
-        FigureCanvasAgg(fig)
-    fig.canvas.draw()
-    rgba = np.asarray(fig.canvas.buffer_rgba())
-    return np.ascontiguousarray(rgba[..., :3])
-
-
-def write_video(frames: Sequence[np.ndarray], path: Path, fps: int = 10) -> Path:
-    """MP4 through imageio-ffmpeg; GIF when ffmpeg is not available. Returns the path written."""
-    import imageio.v2 as imageio
-
-    if not frames:
-        raise ValueError("write_video needs at least one frame")
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    h = max(f.shape[0] for f in frames)
-    w = max(f.shape[1] for f in frames)
-    # codecs want even sizes and equal frames: pad to a common even size
-    h += h % 2
-    w += w % 2
-    padded = []
-    for f in frames:
-        canvas = np.zeros((h, w, 3), dtype=np.uint8)
-        canvas[: f.shape[0], : f.shape[1]] = f
-        padded.append(canvas)
-    if path.suffix.lower() == ".mp4":
-        tmp = path.with_name(path.stem + ".tmp.mp4")
-        try:
-            with imageio.get_writer(tmp, fps=fps, codec="libx264", macro_block_size=1) as writer:
-                for f in padded:
-                    writer.append_data(f)  # type: ignore[attr-defined]
-            tmp.replace(path)
-            return path
-        except Exception:  # ffmpeg missing or failing: fall back to GIF
-            tmp.unlink(missing_ok=True)
-            path = path.with_suffix(".gif")
-    tmp = path.with_name(path.stem + ".tmp.gif")
-    imageio.mimsave(tmp, padded, duration=1.0 / fps, loop=0)  # type: ignore[arg-type]
-    tmp.replace(path)
-    return path
-
-
-def read_video_frames(path: Path) -> int:
-    """Number of frames in a video file (used by tests and the report)."""
-    import imageio.v3 as iio
-
-    return sum(1 for _ in iio.imiter(path))
-
-
 def _save(fig, path: Path) -> None:  # type: ignore[no-untyped-def]
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -266,3 +218,112 @@ def explain_record(agent, record, title: str = "") -> Explained:  # type: ignore
         title=title,
         layer_names=names,
     )
+
+
+# ----- the jobs of `yawil explain` -------------------------------------------------------------------------------
+
+
+def _episode_files(root: Path) -> list[Path]:
+    if root.is_file():
+        return [root]
+    files = sorted(root.rglob("*.h5"))
+    if not files:
+        raise SystemExit(f"yawil explain: no episode files (*.h5) under {root}")
+    return files
+
+
+def explain_frames(agent: Agent, root: Path, out: Path, count: int, seed: int, alpha: float) -> list[Path]:
+    """Figures for `count` frames spread over the dataset (seeded choice); returns their paths, grid last."""
+    from yawil.data.reader import open_episode
+
+    rng = np.random.default_rng(seed)
+    files = _episode_files(root)
+    picks = sorted(rng.choice(len(files), size=count, replace=len(files) < count).tolist())
+    items = []
+    paths = []
+    for n, fi in enumerate(picks):
+        with open_episode(files[fi]) as ep:
+            row = int(rng.integers(len(ep)))
+            rec = ep[row]
+            title = f"ep {ep.episode} frame {rec.frame} ({ep.attrs['weather']})"
+        item = explain_record(agent, rec, title=title)
+        items.append(item)
+        path = out / f"frame_{n:02d}.png"
+        fig = frame_figure(item, alpha, path)
+        _close(fig)
+        paths.append(path)
+    grid = out / "grid.png"
+    _close(grid_figure(items, alpha, grid))
+    paths.append(grid)
+    return paths
+
+
+@dataclass(frozen=True)
+class EpisodeVideo:
+    """The episode `explain_episode` drives: a benchmark route (`route` as TASK:ID of `condition`; the route's
+    own town, weather and traffic) or, without one, a random route of `town` in `weather` with this traffic."""
+
+    route: str | None = None
+    condition: str = "new-town-weather"
+    town: str = "town02"
+    weather: str = "SoftRainSunset"
+    vehicles: int = 20
+    pedestrians: int = 20
+    seed: int = 0
+    steps: int = 300  # at most this many steps
+    every: int = 2  # keep every Nth step in the video
+
+
+def explain_episode(agent: Agent, out: Path, episode: EpisodeVideo = EpisodeVideo(),
+                    alpha: float = DEFAULT_ALPHA) -> Path:
+    """Drive one episode with the agent and write a video of the camera with its heat maps."""
+    from yawil.sim import Scenario, make_world
+    from yawil.video import figure_to_array, write_video
+
+    if episode.route:
+        from yawil.bench.suites import episodes
+
+        task, _, rid = episode.route.partition(":")
+        eps = episodes("all", [episode.condition], [task], routes=rid or "0", seeds=1)
+        scenario = eps[0].scenario(camera=True)
+    else:
+        scenario = Scenario(
+            town=episode.town,
+            weather=episode.weather,
+            vehicles=episode.vehicles,
+            pedestrians=episode.pedestrians,
+            camera=True,
+            min_route_length=200.0,
+        )
+    world = make_world("embedded")
+    frames = []
+    try:
+        obs = world.reset(scenario, seed=episode.seed)
+        agent.reset()
+        for step in range(episode.steps):
+            if step % episode.every == 0:
+                item = explain_observation(agent, obs, title=f"t={obs.time:5.1f}s")
+                control = item_control(item)
+                fig = frame_figure(item, alpha)
+                frames.append(figure_to_array(fig))
+                _close(fig)
+            else:
+                control = agent.act(obs)
+            obs = world.step(control)
+            if obs.done or any(e.kind.value == "collision" for e in obs.events):
+                break
+    finally:
+        world.close()
+    return write_video(frames, out / "episode.mp4", fps=max(1, 10 // episode.every))
+
+
+def item_control(item: Explained) -> Control:
+    from yawil.sim.types import Control
+
+    return Control(steer=item.steer, throttle=item.throttle, brake=item.brake)
+
+
+def _close(fig) -> None:  # type: ignore[no-untyped-def]
+    import matplotlib.pyplot as plt
+
+    plt.close(fig)

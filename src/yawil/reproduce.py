@@ -19,8 +19,8 @@ Expected time (measured parts in docs/performance.md; the rest extrapolated from
 from __future__ import annotations
 
 import argparse
-import functools
 import json
+from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
@@ -74,7 +74,7 @@ def run(args: argparse.Namespace) -> int:
     profile = PROFILES[args.profile]
     if args.pretrained and not Path(args.pretrained).is_file():
         raise SystemExit(f"yawil reproduce: --pretrained {args.pretrained}: no such file")
-    plan = stages(Path(args.out), profile, args.pretrained)
+    plan = stages(Path(args.out), profile, args.pretrained, seed=args.seed, device=args.device)
     print(f"profile {profile.name}: {json.dumps(asdict(profile))}")
     for name, _ in plan:
         print(f"  stage {name}")
@@ -84,7 +84,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"[reproduce] {msg}", flush=True)
 
     for name, fn in plan:
-        run_stage(Path(args.out) / "stages" / f"{name}.json", functools.partial(fn, args), say, name)
+        run_stage(Path(args.out) / "stages" / f"{name}.json", fn, say, name)
     print(f"[reproduce] report: {Path(args.out) / 'report' / 'report.html'}")
     return 0
 
@@ -97,30 +97,32 @@ def models_to_train(pretrained: str | None) -> list[tuple[str, str, str | None]]
     return runs
 
 
-def stages(out: Path, p: ReproduceProfile, pretrained: str | None) -> list[tuple[str, Any]]:
+def stages(out: Path, p: ReproduceProfile, pretrained: str | None, seed: int = 0,
+           device: str = "auto") -> list[tuple[str, Callable[[], dict[str, Any]]]]:
+    """The stages in order, each (name, a function of no arguments returning its marker's content)."""
     data = out / "data" / "town01"
 
-    def collect_stage(args: argparse.Namespace) -> dict[str, Any]:
+    def collect_stage() -> dict[str, Any]:
         from yawil.data.collect import collect
 
-        s = collect(data, town="town01", weathers="train", frames=p.frames, workers=p.collect_workers, seed=args.seed)
+        s = collect(data, town="town01", weathers="train", frames=p.frames, workers=p.collect_workers, seed=seed)
         return {"frames": s.dataset_frames}
 
-    def train_stage(run_name: str, model: str, weights: str | None):  # type: ignore[no-untyped-def]
-        def fn(args: argparse.Namespace) -> dict[str, Any]:
+    def train_stage(run_name: str, model: str, weights: str | None) -> Callable[[], dict[str, Any]]:
+        def fn() -> dict[str, Any]:
             from yawil.train import TrainConfig, train
 
             run_dir = out / "runs" / run_name
             cfg = TrainConfig(model=model, data=[str(data)], out=str(run_dir), epochs=p.epochs,
                               batch_size=p.batch_size, max_minutes=p.max_minutes, pretrained=weights,
-                              seed=args.seed, device=args.device, workers=1)  # fmt: skip
+                              seed=seed, device=device, workers=1)  # fmt: skip
             r = train(cfg, resume=(run_dir / "last.pt").is_file())
             return {"steps": r.steps, "epochs": r.epochs_done, "best_val": r.best_val, "stopped_by": r.stopped_by}
 
         return fn
 
-    def bench_stage(label: str, agent: str):  # type: ignore[no-untyped-def]
-        def fn(args: argparse.Namespace) -> dict[str, Any]:
+    def bench_stage(label: str, agent: str) -> Callable[[], dict[str, Any]]:
+        def fn() -> dict[str, Any]:
             from yawil.bench.runner import AgentSpec, run_benchmark
             from yawil.bench.suites import episodes
 
@@ -131,31 +133,31 @@ def stages(out: Path, p: ReproduceProfile, pretrained: str | None) -> list[tuple
 
         return fn
 
-    def experiments_stage(args: argparse.Namespace) -> dict[str, Any]:
+    def experiments_stage() -> dict[str, Any]:
         from yawil.bench.experiments import noise_experiment, square_experiment
 
-        t1 = square_experiment(out / "square", profile=p.experiments_profile, seed=args.seed)
+        t1 = square_experiment(out / "square", profile=p.experiments_profile, seed=seed)
         t2 = noise_experiment(out / "square", profile=p.experiments_profile)
         return {"table1": str(t1), "table2": str(t2)}
 
-    def explain_stage(args: argparse.Namespace) -> dict[str, Any]:
+    def explain_stage() -> dict[str, Any]:
         from yawil.agent import Agent
-        from yawil.explain_cli import explain_episode, explain_frames
+        from yawil.explain import EpisodeVideo, explain_episode, explain_frames
 
         agent = Agent.from_checkpoint(out / "runs" / "yilratt" / "best.pt")
-        explain_frames(agent, data, out / "explain", 8, args.seed, 0.5)
-        ep = argparse.Namespace(route="dense:0", condition="new-town-weather", town="town02", weather="SoftRainSunset",
-                                vehicles=50, pedestrians=30, seed=args.seed, steps=600, every=2, alpha=0.5)  # fmt: skip
-        return {"video": str(explain_episode(agent, out / "explain", ep))}
+        explain_frames(agent, data, out / "explain", 8, seed, 0.5)
+        ep = EpisodeVideo(route="dense:0", condition="new-town-weather", town="town02", weather="SoftRainSunset",
+                          vehicles=50, pedestrians=30, seed=seed, steps=600, every=2)  # fmt: skip
+        return {"video": str(explain_episode(agent, out / "explain", ep, alpha=0.5))}
 
-    def report_stage(args: argparse.Namespace) -> dict[str, Any]:
+    def report_stage() -> dict[str, Any]:
         from yawil.bench.report import write_report
 
         folders = [out / "results" / "expert"] + [out / "results" / n for n, _, _ in models_to_train(pretrained)]
         paths = write_report(folders, out / "report")
         return {"report": str(paths["report.html"])}
 
-    plan: list[tuple[str, Any]] = [("collect", collect_stage)]
+    plan: list[tuple[str, Callable[[], dict[str, Any]]]] = [("collect", collect_stage)]
     for run_name, model, weights in models_to_train(pretrained):
         plan.append((f"train_{run_name}", train_stage(run_name, model, weights)))
     plan.append(("bench_expert", bench_stage("expert", "expert")))

@@ -244,7 +244,7 @@ class _Recorder:
 
     def __init__(self, obs: Observation) -> None:
         from yawil.bench.plotting import map_figure
-        from yawil.explain import figure_to_array
+        from yawil.video import figure_to_array
 
         fig = map_figure(obs.town, obs.route.xy)
         self._background = figure_to_array(fig)
@@ -287,7 +287,7 @@ class _Recorder:
             self.frames.append(bev)
 
     def write(self, stem: Path) -> str:
-        from yawil.explain import write_video
+        from yawil.video import write_video
 
         return str(write_video(self.frames, stem.with_suffix(".mp4"), fps=10))
 

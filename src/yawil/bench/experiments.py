@@ -88,26 +88,18 @@ def _mark(path: Path, info: dict[str, Any]) -> None:
     write_marker(path / ".done", info)
 
 
-def _cli(argv: Sequence[str]) -> None:
-    """Run a yawil sub-command in-process (their command lines are the stable, documented interface)."""
-    from yawil.cli import main
-
-    try:
-        code = main(list(argv))
-    except SystemExit as stop:  # argparse errors and commands that exit
-        code = stop.code if isinstance(stop.code, int) else 1
-    if code:
-        raise RuntimeError(f"`yawil {' '.join(argv)}` failed with exit code {code}")
-
-
 def collect_stage(out: Path, p: Profile, seed: int, log: Log) -> Path:
     data = out / "data" / "full"
     if _done(data):
         log(f"collect: {data} done, skipped")
         return data
+    from yawil.data.collect import CollectConfig, collect
+
     log(f"collect: {p.frames} expert frames on the square -> {data}")
-    _cli(["collect", "--town", "square", "--weathers", "ClearNoon", "--frames", str(p.frames), "--out", str(data),
-          "--workers", str(p.collect_workers), "--seed", str(seed), "--vehicles", "0", "--pedestrians", "0"])
+    summary = collect(data, town="square", weathers="ClearNoon", frames=p.frames, workers=p.collect_workers,
+                      seed=seed, config=CollectConfig(vehicles=(0, 0), pedestrians=(0, 0)))  # fmt: skip
+    log(f"collect: wrote {summary.episodes_written} episodes, {summary.frames_written} frames; "
+        f"dataset now {summary.dataset_frames} frames")
     _mark(data, {"frames": p.frames, "seed": seed})
     return data
 
@@ -121,8 +113,10 @@ def subset_stage(out: Path, full: Path, log: Log) -> dict[str, Path]:
         if _done(dst):
             log(f"subset: {dst} done, skipped")
         else:
+            from yawil.data.subset import write_subset
+
             log(f"subset: {only} -> {dst}")
-            _cli(["data", "subset", str(full), "--only", only, "--out", str(dst)])
+            write_subset(full, dst, only, quiet=False)
             _mark(dst, {"only": only})
         paths[folder] = dst
     return paths

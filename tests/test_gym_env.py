@@ -15,7 +15,7 @@ from gymnasium.utils.env_checker import check_env
 import yawil
 from yawil.expert import Expert
 from yawil.guidance import GuidanceConfig, compute_guidance, yaw_guidance
-from yawil.sim.gym_env import YawilDriveEnv
+from yawil.gym_env import YawilDriveEnv
 
 IDS = ("yawil/Town01-v0", "yawil/Town02-v0", "yawil/Square-v0")
 

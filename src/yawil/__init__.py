@@ -10,7 +10,7 @@ imports gymnasium: the simulator (and never torch) loads on `gym.make`, through 
 
 __version__ = "0.1.0"
 
-# (id, town) of each registered environment; entry point yawil.sim.gym_env:make_env (docs/simulator.md)
+# (id, town) of each registered environment; entry point yawil.gym_env:make_env (docs/simulator.md)
 GYM_ENVS: tuple[tuple[str, str], ...] = (
     ("yawil/Town01-v0", "town01"),
     ("yawil/Town02-v0", "town02"),
@@ -25,7 +25,7 @@ def _register_gym_envs() -> None:
         return
     for env_id, town in GYM_ENVS:
         if env_id not in gymnasium.registry:
-            gymnasium.register(id=env_id, entry_point="yawil.sim.gym_env:make_env", kwargs={"town": town})
+            gymnasium.register(id=env_id, entry_point="yawil.gym_env:make_env", kwargs={"town": town})
 
 
 _register_gym_envs()

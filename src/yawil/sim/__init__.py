@@ -1,9 +1,9 @@
-"""The simulator interface: backend-neutral types, `make_world`, and the Gymnasium environments.
+"""The simulator interface: backend-neutral types and `make_world`.
 
 `make_world("embedded")` gives the built-in simulator (yawil.sim.town); `make_world("carla", ...)` the CARLA
 backend when it is installed. The Gymnasium environments (`yawil/Town01-v0`, `yawil/Town02-v0`,
-`yawil/Square-v0`, module `yawil.sim.gym_env`) are registered by the parent package, `import yawil`, which
-every import of this package runs first; the environment module loads on `gymnasium.make`.
+`yawil/Square-v0`) live above the simulator, in `yawil.gym_env` (they add guidance and the expert's action);
+`import yawil` registers them, and the environment module loads on `gymnasium.make`.
 """
 
 from __future__ import annotations

@@ -1,5 +1,8 @@
 """Gymnasium wrapper of the embedded world: `gymnasium.make("yawil/Town01-v0")` (also Town02, Square).
 
+It sits above the simulator, not in it (docs/architecture.md): it adds the guidance vector and the expert's
+action to what the world gives.
+
 `import yawil` registers the ids (see `yawil.__init__`); the entry point is `make_env` below, which checks
 the options and builds `YawilDriveEnv`.
 

@@ -15,12 +15,12 @@ from typing import Any
 import carla
 import pytest
 
-import yawil.sim.carla.routes as carla_routes
+import yawil.bench.carla_routes as carla_routes
 from carla_fakes import VERSION, FakeCarlaServer
+from yawil.bench.carla_routes import CARLA_ROUTES_DIR, generate_routes
+from yawil.bench.carla_routes import connect as connect_mod
 from yawil.bench.suites import load_routes
 from yawil.cli import main
-from yawil.sim.carla.routes import CARLA_ROUTES_DIR, generate_routes
-from yawil.sim.carla.routes import connect as connect_mod
 from yawil.sim.carla.topology import CarlaTopology
 
 FIX = Path(__file__).parent / "fixtures" / "carla"
@@ -141,7 +141,7 @@ def test_missing_file_in_the_carla_folder_names_the_carla_commands(tmp_path: Pat
     assert suites._CARLA_ROUTES_DIR.resolve() == CARLA_ROUTES_DIR.resolve()  # the folder load_routes recognises
     monkeypatch.setattr(suites, "_CARLA_ROUTES_DIR", tmp_path / "carla")  # an empty one, whatever is committed
     with pytest.raises(ValueError, match=r"`yawil bench --backend carla` makes it from the server's map on first connect.*"
-                                         r"python -m yawil\.sim\.carla\.routes --xodr Town01\.xodr --town town01"):
+                                         r"python -m yawil\.bench\.carla_routes --xodr Town01\.xodr --town town01"):
         load_routes("town01", tmp_path / "carla")
     with pytest.raises(ValueError, match=r"yawil bench routes --town town01"):  # elsewhere: the embedded command
         load_routes("town01", tmp_path)

@@ -11,8 +11,7 @@ from pathlib import Path
 import carla
 import pytest
 
-from yawil.bench.suites import parse_route
-from yawil.sim.carla.routes import (
+from yawil.bench.carla_routes import (
     CARLA_ROUTES_DIR,
     TOWNS,
     generate_routes,
@@ -21,7 +20,8 @@ from yawil.sim.carla.routes import (
     validate_routes,
     write_route_file,
 )
-from yawil.sim.carla.routes.__main__ import main
+from yawil.bench.carla_routes.__main__ import main
+from yawil.bench.suites import parse_route
 from yawil.sim.carla.topology import CarlaTopology
 from yawil.sim.types import Pose
 
@@ -83,7 +83,7 @@ def test_xodr_source_writes_a_full_file_with_its_provenance_and_checks_it(made: 
     assert doc["source"] == {"kind": "xodr", "map": "Town02", "xodr_file": "grid.xodr",
                              "xodr_sha256": hashlib.sha256(xodr.read_bytes()).hexdigest(),
                              "carla_client": version("carla")}
-    assert doc["generated_by"] == "python -m yawil.sim.carla.routes --xodr grid.xodr --town town02 --seed 0"
+    assert doc["generated_by"] == "python -m yawil.bench.carla_routes --xodr grid.xodr --town town02 --seed 0"
     lists, src = load_carla_routes("town02", made)  # the protocol's 25 per task, kinds, lengths
     assert {k: len(v) for k, v in lists.items()} == {"straight": 25, "one_turn": 25, "navigation": 25}
     assert src["xodr_sha256"] == doc["source"]["xodr_sha256"]
@@ -149,7 +149,7 @@ def test_committed_route_files_are_valid_or_absent_with_the_recipe(town: str) ->
     must say how to make it; once committed, it must pass every check that needs no map."""
     path = CARLA_ROUTES_DIR / f"{town}.json"
     if not path.exists():
-        with pytest.raises(ValueError, match=rf"python -m yawil\.sim\.carla\.routes --xodr Town0\d\.xodr --town {town}"):
+        with pytest.raises(ValueError, match=rf"python -m yawil\.bench\.carla_routes --xodr Town0\d\.xodr --town {town}"):
             load_carla_routes(town)
         return
     lists, src = load_carla_routes(town)

@@ -238,10 +238,10 @@ def _carla_episodes(args: argparse.Namespace) -> tuple[list[Any], Callable[[], A
     """
     from pathlib import Path
 
+    from yawil.bench.carla_routes.connect import prepare_route_file
     from yawil.bench.suites import SUITE_CONDITIONS, episodes, get_condition, get_suite
     from yawil.sim import make_world
     from yawil.sim.carla.errors import CarlaSetupError
-    from yawil.sim.carla.routes.connect import prepare_route_file
     from yawil.sim.carla.world import carla_town
 
     get_suite(args.suite)

@@ -30,7 +30,7 @@ from yawil.sim.types import Pose, Scenario
 from yawil.sim.weather import TEST_WEATHERS, TRAIN_WEATHERS, get_weather
 
 ROUTES_DIR = Path(__file__).with_name("routes")
-_CARLA_ROUTES_DIR = Path(__file__).parent.parent / "sim" / "carla" / "routes"  # yawil.sim.carla.routes, not imported here
+_CARLA_ROUTES_DIR = Path(__file__).parent / "carla_routes"  # yawil.bench.carla_routes, not imported here
 ROUTE_FORMAT = "yawil-routes/1"
 ROUTES_PER_TASK = 25
 SQUARE_TASKS = 32
@@ -245,7 +245,7 @@ def load_routes(town: str, folder: Path | None = None) -> dict[str, list[RouteSp
     if not path.exists():
         if folder is not None and Path(folder).resolve() == _CARLA_ROUTES_DIR.resolve():
             raise ValueError(f"no CARLA route file for town {town!r} at {path}; `yawil bench --backend carla` makes it "
-                             f"from the server's map on first connect, or make it with `python -m yawil.sim.carla.routes "
+                             f"from the server's map on first connect, or make it with `python -m yawil.bench.carla_routes "
                              f"--xodr {town.capitalize()}.xodr --town {town}` (no server) or `--host HOST --town {town}`")
         raise ValueError(f"no route file for town {town!r} at {path}; generate it with `yawil bench routes --town {town}`")
     try:

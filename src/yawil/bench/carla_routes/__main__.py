@@ -1,4 +1,4 @@
-"""`python -m yawil.sim.carla.routes`: make (or --check) the CARLA route files from a server or an OpenDRIVE file.
+"""`python -m yawil.bench.carla_routes`: make (or --check) the CARLA route files from a server or an OpenDRIVE file.
 
 With `--xodr PATH --town townNN` no server is needed: the map is built client-side from CARLA's own
 OpenDRIVE file of that town (`carla.Map(name, xodr_text)`). Otherwise the maps come from the server at
@@ -13,7 +13,7 @@ from typing import Any
 
 
 def main(argv: list[str] | None = None) -> int:
-    p = argparse.ArgumentParser(prog="python -m yawil.sim.carla.routes", description=__doc__,
+    p = argparse.ArgumentParser(prog="python -m yawil.bench.carla_routes", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--xodr", default=None, metavar="PATH",
                    help="CARLA's OpenDRIVE file of the town (e.g. Town01.xodr): no server; needs exactly one --town")
@@ -22,14 +22,14 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--timeout", type=float, default=20.0, help="client time-out in seconds (map loading is slow)")
     p.add_argument("--town", action="append", choices=["town01", "town02"], help="repeatable; default both")
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--out", default=None, help="folder (default: the package's yawil/sim/carla/routes)")
+    p.add_argument("--out", default=None, help="folder (default: the package's yawil/bench/carla_routes)")
     p.add_argument("--check", action="store_true", help="only validate the existing files against the map(s)")
     p.add_argument("--plot", default=None, metavar="PNG",
                    help="also draw a few routes of each task over the map (with several towns: PNG name gets the town)")
     args = p.parse_args(argv)
     from pathlib import Path
 
-    from yawil.sim.carla.routes import CARLA_ROUTES_DIR
+    from yawil.bench.carla_routes import CARLA_ROUTES_DIR
 
     folder = Path(args.out) if args.out else CARLA_ROUTES_DIR
     towns = args.town or ["town01", "town02"]
@@ -47,8 +47,8 @@ def _plot(topo: Any, town: str, folder: Any, png: str | None, several: bool) -> 
         return
     from pathlib import Path
 
-    from yawil.sim.carla.routes import load_carla_routes
-    from yawil.sim.carla.routes.plot import plot_routes
+    from yawil.bench.carla_routes import load_carla_routes
+    from yawil.bench.carla_routes.plot import plot_routes
 
     out = Path(png)
     if several:
@@ -58,7 +58,7 @@ def _plot(topo: Any, town: str, folder: Any, png: str | None, several: bool) -> 
 
 def _check(topo: Any, town: str, folder: Any, recorded_sha: str | None = None) -> str:
     """Validate the file in `folder` against `topo`; the message to print (ValueError when it does not fit)."""
-    from yawil.sim.carla.routes import load_carla_routes, validate_routes
+    from yawil.bench.carla_routes import load_carla_routes, validate_routes
 
     lists, src = load_carla_routes(town, folder)
     validate_routes(topo, lists, str(folder / f"{town}.json"))
@@ -69,7 +69,7 @@ def _check(topo: Any, town: str, folder: Any, recorded_sha: str | None = None) -
 
 
 def _from_xodr(path: Any, town: str, args: argparse.Namespace, folder: Any) -> int:
-    from yawil.sim.carla.routes import topology_from_xodr, write_route_file
+    from yawil.bench.carla_routes import topology_from_xodr, write_route_file
 
     try:
         topo, source = topology_from_xodr(path, town)
@@ -86,8 +86,8 @@ def _from_xodr(path: Any, town: str, args: argparse.Namespace, folder: Any) -> i
 
 
 def _from_server(towns: list[str], args: argparse.Namespace, folder: Any) -> int:
+    from yawil.bench.carla_routes import client_version, write_route_file
     from yawil.sim.carla.errors import CarlaSetupError
-    from yawil.sim.carla.routes import client_version, write_route_file
     from yawil.sim.carla.world import CarlaWorld, carla_town
 
     try:

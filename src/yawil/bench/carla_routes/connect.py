@@ -2,7 +2,7 @@
 
 `yawil bench --backend carla` calls `prepare_route_file` once per town, after connecting: the first run on a
 machine without a committed file generates it from the server's own map (seed 0, the same generator as
-`python -m yawil.sim.carla.routes`) and writes it atomically to a user folder; every later run finds that
+`python -m yawil.bench.carla_routes`) and writes it atomically to a user folder; every later run finds that
 file, checks it against the server (start and goal within 2 m of a driving lane, goal reachable, length
 within 1 %) and drives the same episodes. A file that does not fit the server's map stops the run before
 any episode, naming the file, the route and the figure.
@@ -19,7 +19,7 @@ from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
-from yawil.sim.carla.routes import (
+from yawil.bench.carla_routes import (
     CARLA_ROUTES_DIR,
     TOWNS,
     client_version,
@@ -85,7 +85,7 @@ def prepare_route_file(world: Any, town: str, routes_dir: Path | None = None,
     except ValueError as err:
         raise ValueError(f"{err}. The route file does not fit the map {topo.name!r} of the server at {world.address} "
                          f"(file made from {_describe(src)}); to drive this server, make a file from it with "
-                         f"`python -m yawil.sim.carla.routes --host HOST --port PORT --town {town} --out DIR` "
+                         f"`python -m yawil.bench.carla_routes --host HOST --port PORT --town {town} --out DIR` "
                          f"and pass --routes-dir DIR") from None
     n = sum(len(v) for v in lists.values())
     log(f"{town}: {path} fits the server's map {topo.name} ({n} routes: start and goal within 2 m of a lane, "

@@ -3,7 +3,7 @@
 Same format as yawil's own route files (`yawil-routes/1`: 25 routes per task list straight, one_turn,
 navigation, start and goal as map coordinates in yawil's frame), so `yawil.bench.suites.load_routes(town,
 folder=CARLA_ROUTES_DIR)` reads them. They need the real map, which comes from one of two sources:
-a live server (`python -m yawil.sim.carla.routes --host HOST --port 2000 --town town01`) or, with no
+a live server (`python -m yawil.bench.carla_routes --host HOST --port 2000 --town town01`) or, with no
 server, CARLA's own OpenDRIVE file of the town (`--xodr Town01.xodr --town town01`): `carla.Map(name,
 xodr_text)` builds the same map client-side that the server hands out, minus traffic-light actors (which
 route files do not store). The rules are the embedded towns' (yawil.bench.routegen): routes are drawn as
@@ -11,7 +11,8 @@ walks on the topology, re-planned from their end points exactly as CarlaWorld wi
 classified by `yawil.bench.routegen.classify`. A generated file is validated against the map (every start
 and goal snaps to a driving lane within 2 m, every goal is reachable, lengths match) and records its
 source (`source`: kind, map name, the xodr's sha256, the carla client version) so a later check can tell
-which map it was made from. (This tool imports yawil.bench lazily: it writes benchmark data.)
+which map it was made from. It lives in yawil.bench, not beside the CARLA backend, because it makes
+benchmark data: it reads the CARLA map through yawil.sim.carla and writes the benchmark's route format.
 `connect.py` finds, makes and checks a town's file when `yawil bench --backend carla` connects.
 """
 
@@ -195,7 +196,7 @@ def write_route_file(topo: CarlaTopology, town: str, seed: int = 0, folder: Path
     path = (folder or CARLA_ROUTES_DIR) / f"{town}.json"
     write_json_atomic(path, {
         "format": ROUTE_FORMAT, "town": town, "map": topo.name, "source": src,
-        "generated_by": f"python -m yawil.sim.carla.routes {how} --town {town} --seed {seed}",
+        "generated_by": f"python -m yawil.bench.carla_routes {how} --town {town} --seed {seed}",
         "rules": "docs/benchmark.md#routes",
         "routes": {name: [s.to_json() for s in specs] for name, specs in lists.items()},
     })
@@ -217,7 +218,7 @@ def load_carla_routes(town: str, folder: Path | None = None) -> tuple[dict[str, 
         raise ValueError(f"no CARLA route file for town {town!r}; choose one of {', '.join(TOWNS)}")
     path = route_file(town, folder or CARLA_ROUTES_DIR)
     if not path.exists():
-        raise ValueError(f"no CARLA route file for {town} at {path}; make it with `python -m yawil.sim.carla.routes "
+        raise ValueError(f"no CARLA route file for {town} at {path}; make it with `python -m yawil.bench.carla_routes "
                          f"--xodr {carla_town(town)}.xodr --town {town}` (no server needed) or `--host HOST --town {town}`")
     lists = load_routes(town, path.parent)
     src = json.loads(path.read_text(encoding="utf-8")).get("source")

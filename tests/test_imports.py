@@ -11,7 +11,7 @@ Every module belongs to a layer, and the layers follow the data flow, lowest fir
      6 models     yawil.models
      7 checkpoint yawil.checkpoint (format, normalisation statistics, model rebuild)
      8 policy     yawil.policy (the model-input contract, runtime)
-     9 learn      yawil.augment, yawil.train, yawil.train_cli, yawil.export
+     9 learn      yawil.augment, yawil.distributed, yawil.train, yawil.train_cli, yawil.export
     10 agent      yawil.agent
     11 bench      yawil.bench (suites, route files, runner, metrics, report, experiments, select)
     12 dagger     yawil.dagger
@@ -56,7 +56,7 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("models", ("yawil.models",)),
     ("checkpoint", ("yawil.checkpoint",)),
     ("policy", ("yawil.policy",)),
-    ("learn", ("yawil.augment", "yawil.train", "yawil.train_cli", "yawil.export")),
+    ("learn", ("yawil.augment", "yawil.distributed", "yawil.train", "yawil.train_cli", "yawil.export")),
     ("agent", ("yawil.agent",)),
     ("bench", ("yawil.bench",)),
     ("dagger", ("yawil.dagger",)),

@@ -8,6 +8,9 @@ Determinism: the data order of epoch e is drawn from (seed, e) (a permutation, o
 with `brake_fraction`), the augmentation of step s
 uses a generator seeded from (seed, s), the model is built with `seed`, and the torch/numpy/python RNG
 states are saved, so a stopped run resumed gives the weights an uninterrupted run would have.
+
+Under `torchrun` (WORLD_SIZE > 1) the same loop runs on every rank with DistributedDataParallel, each rank
+on its slice of every global batch; rank 0 validates and writes (yawil.distributed, docs/training.md).
 """
 
 from __future__ import annotations
@@ -23,7 +26,7 @@ import threading
 import time
 from collections.abc import Callable, Iterator, Mapping, Sequence
 from contextlib import contextmanager
-from dataclasses import asdict, dataclass, field, fields
+from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
@@ -32,8 +35,10 @@ import torch
 import yaml
 from torch import Tensor
 
+from yawil import distributed
 from yawil.augment import AugmentConfig, augment_batch
 from yawil.checkpoint import Norm, load_checkpoint, make_checkpoint, save_checkpoint
+from yawil.distributed import Dist
 from yawil.fileio import write_atomic
 from yawil.policy.inputs import InputSpec, guidance_key
 from yawil.policy.runtime import DEVICES, PRECISIONS, Runtime, resolve_runtime
@@ -312,10 +317,12 @@ def drop_speed(speed: Tensor, p: float, gen: torch.Generator) -> Tensor:
     return speed * keep.to(speed.dtype)
 
 
-def step_generator(seed: int, step: int, device: torch.device) -> torch.Generator:
-    """Augmentation randomness of one step, independent of everything else that happened."""
+def step_generator(seed: int, step: int, device: torch.device, rank: int | None = None) -> torch.Generator:
+    """Augmentation randomness of one step, independent of everything else that happened; under torchrun
+    each rank draws its own, from (seed, step, rank)."""
+    entropy = [seed, step, 0xA5] if rank is None else [seed, step, 0xA5, rank]
     g = torch.Generator(device=device)
-    g.manual_seed(int(np.random.SeedSequence([seed, step, 0xA5]).generate_state(1, np.uint64)[0] >> 1))
+    g.manual_seed(int(np.random.SeedSequence(entropy).generate_state(1, np.uint64)[0] >> 1))
     return g
 
 
@@ -410,6 +417,12 @@ def rng_states() -> dict[str, Any]:
     if torch.cuda.is_available():
         states["cuda"] = torch.cuda.get_rng_state_all()
     return states
+
+
+def seed_globals(seed: int) -> None:
+    torch.manual_seed(seed)
+    np.random.seed(seed)  # noqa: NPY002 (the legacy global state, for third-party code)
+    random.seed(seed)
 
 
 def set_rng_states(states: Mapping[str, Any]) -> None:
@@ -560,25 +573,43 @@ def check_resumable(saved: Mapping[str, Any], cfg: TrainConfig, path: Path) -> N
 
 
 def train(
-    cfg: TrainConfig, resume: bool = False, splits: tuple[Any, Any, Mapping[str, Any]] | None = None
-) -> TrainResult:
+    cfg: TrainConfig, resume: bool = False, splits: tuple[Any, Any, Mapping[str, Any]] | None = None,
+    dist_backend: str | None = None,
+) -> TrainResult:  # fmt: skip
     """Train (or resume) a run in `cfg.out`; returns when the epochs or a budget are used up.
 
     `splits` = (train dataset, validation dataset, guidance config dict) replaces the datasets that
     `cfg.data` names, for data already in memory; the datasets follow yawil.data.DrivingDataset's contract
     (sample dicts, and `labels(name)` giving a label array without decoding images). One process at a time
-    writes a run folder (yawil.locking).
+    writes a run folder (yawil.locking). Under torchrun (WORLD_SIZE > 1) every rank calls this; the process
+    group is initialised here unless the caller did (`dist_backend`: gloo or nccl; default by the device).
     """
     from yawil.locking import folder_lock
 
-    with folder_lock(cfg.out, "training run"):
-        return _train(cfg, resume, splits)
+    world = distributed.world_from_env()
+    if world is None:
+        with folder_lock(cfg.out, "training run"):
+            return _train(cfg, resume, splits)
+    distributed.check_batch_size(cfg.batch_size, world[1])
+    d = distributed.start(resolve_runtime(cfg.device, cfg.precision, cfg.channels_last).device.type, dist_backend)
+    try:
+        if not d.main:
+            return _train(cfg, resume, splits, d)
+        with folder_lock(cfg.out, "training run"):  # rank 0 writes the folder
+            return _train(cfg, resume, splits, d)
+    finally:
+        distributed.stop(d)
 
 
-def _train(cfg: TrainConfig, resume: bool, splits: tuple[Any, Any, Mapping[str, Any]] | None) -> TrainResult:
-    torch.set_num_threads(cfg.threads or auto_threads(cfg.workers))
+def _train(
+    cfg: TrainConfig, resume: bool, splits: tuple[Any, Any, Mapping[str, Any]] | None, d: Dist | None = None
+) -> TrainResult:
+    torch.set_num_threads(cfg.threads or (auto_threads(cfg.workers) if d is None else distributed.auto_threads(d, cfg.workers)))
+    main = d is None or d.main  # the process that validates and writes
     out = Path(cfg.out)
     runtime = resolve_runtime(cfg.device, cfg.precision, cfg.channels_last)
+    if d is not None and runtime.device.type == "cuda":
+        runtime = replace(runtime, device=torch.device("cuda", d.local_rank))
     train_ds, val_ds, guidance_config = open_splits(cfg) if splits is None else splits
     guidance_config = dict(guidance_config)
     from yawil.guidance import GuidanceConfig
@@ -609,9 +640,12 @@ def _train(cfg: TrainConfig, resume: bool, splits: tuple[Any, Any, Mapping[str, 
         norm = Norm.from_dict(init["norm"])  # the inputs keep the scale the weights learned
     else:
         norm = Norm.from_arrays(*label_arrays(train_ds, kind))
+    if d is not None:  # W ranks of B / W samples then compute the batch statistics of one process with B
+        model = distributed.sync_batchnorm(model, runtime.device.type)
     model.to(runtime.device)
     if runtime.channels_last:
         model.to(memory_format=torch.channels_last)  # type: ignore[call-arg]
+    trainee = model if d is None else distributed.wrap(model, d, runtime.device)  # what the steps run
     # foreach: one kernel per step for all tensors, measured 2x faster than the per-tensor loop on the CPU
     optimizer = torch.optim.Adam(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay, foreach=True)
     scheduler = torch.optim.lr_scheduler.StepLR(optimizer, step_size=cfg.lr_step_epochs, gamma=cfg.lr_gamma)
@@ -625,39 +659,67 @@ def _train(cfg: TrainConfig, resume: bool, splits: tuple[Any, Any, Mapping[str, 
             scaler.load_state_dict(ckpt["scaler"])
         pos = Position(**ckpt["position"])
         metrics = list(ckpt["metrics"])
-        set_rng_states(ckpt["rng"])
+        ranks = ckpt.get("rng_ranks")
+        if d is None:
+            set_rng_states(ckpt["rng"])
+        elif ranks is not None and len(ranks) == d.world:  # each rank goes on with its own generators
+            set_rng_states(ranks[d.rank])
+        else:  # another world size saved it: each rank's generators from (seed, rank, step)
+            seed_globals(int(np.random.SeedSequence([cfg.seed, d.rank, pos.step]).generate_state(1)[0]))
     else:
         if out.joinpath("last.pt").exists():
             raise FileExistsError(f"{out} already holds a run (last.pt); use --resume or another --out")
         # Dropout draws from the global generators: seed them so that a fresh run is reproducible.
-        torch.manual_seed(cfg.seed)
-        np.random.seed(cfg.seed)  # noqa: NPY002 (the legacy global state, for third-party code)
-        random.seed(cfg.seed)
-    write_atomic(out / "config.yaml", yaml.safe_dump(cfg.to_dict(), sort_keys=False))
+        seed_globals(cfg.seed if d is None else distributed.rank_seed(cfg.seed, d.rank))
+    if main:
+        write_atomic(out / "config.yaml", yaml.safe_dump(cfg.to_dict(), sort_keys=False))
 
-    from torch.utils.tensorboard import SummaryWriter
     from tqdm import tqdm
 
-    writer = SummaryWriter(str(out / "tb"), purge_step=pos.step if resume else None)
+    if main:
+        from torch.utils.tensorboard import SummaryWriter
+
+        writer: Any = SummaryWriter(str(out / "tb"), purge_step=pos.step if resume else None)
+    else:
+        writer = distributed.NoWriter()
     val_loader = _loader(val_ds, sequential_batches(len(val_ds), cfg.batch_size), cfg, runtime)
     started = time.monotonic()
     stopped_by = "epochs"
 
-    def snapshot() -> dict[str, Any]:
-        return make_checkpoint(
+    def save(path: Path) -> None:
+        """The checkpoint of this position; under torchrun every rank calls it (their RNG states are
+        gathered: `rng_ranks`) and rank 0 writes it."""
+        rng = rng_states()
+        extra: dict[str, Any] = {}
+        if d is not None:
+            extra["rng_ranks"] = distributed.gather_objects(rng, d)
+            if not d.main:
+                return
+        save_checkpoint(make_checkpoint(
             model, norm, guidance_config, cfg.to_dict(), pos.epoch, pos.step, metrics,
             optimizer=optimizer.state_dict(),
             scheduler=scheduler.state_dict(),
             scaler=scaler.state_dict(),
-            rng=rng_states(),
+            rng=rng,
             position=asdict(pos),
             runtime={"device": runtime.device.type, "precision": runtime.precision, "channels_last": runtime.channels_last},
-        )  # fmt: skip
+            **extra,
+        ), path)  # fmt: skip
+
+    def sync() -> None:
+        """Under torchrun: no rank leaves before rank 0 has written (torchrun stops the others when one exits)."""
+        if d is not None:
+            distributed.barrier(d)
 
     def end_of_period(partial: bool) -> None:
         """Validate, log, keep best and last. `partial`: a budget stopped the epoch midway. Without a validation
         split the metrics' validation columns are NaN and best.pt follows last.pt."""
-        val = validate(model, val_loader, norm, kind, cfg, runtime) if len(val_ds) else dict.fromkeys(VAL_KEYS, math.nan)
+        val = None
+        if main:
+            val = validate(model, val_loader, norm, kind, cfg, runtime) if len(val_ds) else dict.fromkeys(VAL_KEYS, math.nan)
+        if d is not None:
+            val = distributed.broadcast_object(val, d)  # every rank keeps the same metrics and best_val
+        assert val is not None
         row: dict[str, float] = {
             "epoch": pos.epoch + (pos.batch / max(1, n_batches) if partial else 1),
             "step": pos.step,
@@ -677,10 +739,11 @@ def _train(cfg: TrainConfig, resume: bool, splits: tuple[Any, Any, Mapping[str, 
             scheduler.step()
             pos.epoch += 1
             pos.batch, pos.loss_sum, pos.samples, pos.seconds = 0, 0.0, 0, 0.0
-        save_checkpoint(snapshot(), out / "last.pt")
-        if improved:
-            link_or_copy(out / "last.pt", out / "best.pt")
-        write_metrics(out, metrics)
+        save(out / "last.pt")
+        if main:
+            if improved:
+                link_or_copy(out / "last.pt", out / "best.pt")
+            write_metrics(out, metrics)
         writer.flush()
 
     keep_at = set(cfg.keep_steps)
@@ -688,7 +751,7 @@ def _train(cfg: TrainConfig, resume: bool, splits: tuple[Any, Any, Mapping[str, 
     def keep(step: int) -> None:
         """The checkpoint after `step` steps, kept apart (its position resumes mid-epoch like last.pt)."""
         if step in keep_at:
-            save_checkpoint(snapshot(), out / f"step_{step:06d}.pt")
+            save(out / f"step_{step:06d}.pt")
 
     model.train()
     n_batches = 0
@@ -703,16 +766,22 @@ def _train(cfg: TrainConfig, resume: bool, splits: tuple[Any, Any, Mapping[str, 
             stopped_by = "max_steps"
             break
         batches = epoch_batches(len(train_ds), cfg.batch_size, cfg.seed, pos.epoch, p)
+        sizes: list[int] | None = None  # global batch sizes, under torchrun
+        if d is None:
+            loader = _loader(train_ds, batches[pos.batch :], cfg, runtime)
+        else:
+            batches = distributed.usable_batches(batches, d.world)
+            mine, sizes = distributed.rank_batches(batches[pos.batch :], d)
+            loader = _loader(train_ds, mine, cfg, runtime)
         n_batches = len(batches)
-        loader = _loader(train_ds, batches[pos.batch :], cfg, runtime)
         bar = tqdm(
             total=n_batches, initial=pos.batch, desc=f"epoch {pos.epoch + 1}/{cfg.epochs}",
-            disable=not cfg.progress, unit="batch", dynamic_ncols=True,
+            disable=not cfg.progress or not main, unit="batch", dynamic_ncols=True,
         )  # fmt: skip
         try:
-            with _stop_between_steps():
-                stop = _train_epoch(model, loader, optimizer, scaler, norm, kind, uses_command, cfg, runtime, pos, writer,
-                                    bar, started, keep)
+            with _stop_between_steps(announce=main):
+                stop = _train_epoch(trainee, loader, optimizer, scaler, norm, kind, uses_command, cfg, runtime, pos,
+                                    writer, bar, started, keep, d, sizes)
         except _StopRequested:
             # Ctrl-C or SIGTERM, taken between two steps: the state saved is exactly that after pos.step steps,
             # so --resume gives the weights of an uninterrupted run
@@ -720,8 +789,10 @@ def _train(cfg: TrainConfig, resume: bool, splits: tuple[Any, Any, Mapping[str, 
             if pos.batch > 0:
                 end_of_period(partial=True)
             writer.close()
-            plot_losses(out, metrics)
-            print(f"interrupted at step {pos.step}; resume with --resume", file=sys.stderr)
+            if main:
+                plot_losses(out, metrics)
+                print(f"interrupted at step {pos.step}; resume with --resume", file=sys.stderr)
+            sync()
             raise KeyboardInterrupt(f"stopped at step {pos.step}") from None
         except _DataError as err:
             # the weights are those after pos.step whole steps: save them, then name the data problem
@@ -729,6 +800,7 @@ def _train(cfg: TrainConfig, resume: bool, splits: tuple[Any, Any, Mapping[str, 
             if pos.batch > 0:
                 end_of_period(partial=True)
             writer.close()
+            sync()
             raise ValueError(f"cannot read a training batch ({err}); the run is saved at step {pos.step}: "
                              "check the data (yawil data check; a resumed collect re-collects damaged episodes), "
                              "then --resume") from None
@@ -746,9 +818,10 @@ def _train(cfg: TrainConfig, resume: bool, splits: tuple[Any, Any, Mapping[str, 
             break
         end_of_period(partial=False)
     writer.close()
-    plot_losses(out, metrics)
+    if main:
+        plot_losses(out, metrics)
+    sync()
     return TrainResult(out, pos.epoch, pos.step, pos.best_val, metrics, stopped_by)
-
 
 class _StopRequested(Exception):
     """Raised between two optimiser steps after a Ctrl-C or SIGTERM."""
@@ -758,7 +831,7 @@ _STOP = {"requested": False}
 
 
 @contextmanager
-def _stop_between_steps() -> Iterator[None]:
+def _stop_between_steps(announce: bool = True) -> Iterator[None]:
     """Ctrl-C and SIGTERM ask the loop to stop after the current step instead of interrupting it: a step cut
     in the middle has already moved BatchNorm's running statistics (or some of the weights), and a checkpoint
     of that would not resume to an uninterrupted run's weights. A second signal stops at once, unsaved."""
@@ -770,7 +843,8 @@ def _stop_between_steps() -> Iterator[None]:
         if _STOP["requested"]:
             raise KeyboardInterrupt(f"signal {signum}")
         _STOP["requested"] = True
-        print("stopping after this step (press Ctrl-C again to stop at once, unsaved)", file=sys.stderr, flush=True)
+        if announce:
+            print("stopping after this step (press Ctrl-C again to stop at once, unsaved)", file=sys.stderr, flush=True)
 
     _STOP["requested"] = False
     previous = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
@@ -790,26 +864,39 @@ def _check_stop() -> None:
 def _train_epoch(
     model: Any, loader: Any, optimizer: torch.optim.Optimizer, scaler: torch.amp.GradScaler, norm: Norm,
     kind: str | None, uses_command: bool, cfg: TrainConfig, runtime: Runtime, pos: Position, writer: Any,
-    bar: Any, started: float, keep: Callable[[int], None] | None = None,
+    bar: Any, started: float, keep: Callable[[int], None] | None = None, d: Dist | None = None,
+    sizes: Sequence[int] | None = None,
 ) -> str | None:  # fmt: skip
-    """Run the rest of the current epoch; return the name of the budget that stopped it, or None."""
+    """Run the rest of the current epoch; return the name of the budget that stopped it, or None.
+
+    Under torchrun (`d`; `sizes` the global batch sizes) the ranks agree after each step on the loss of the
+    global batch, a stop request and the time budget, so that every rank stops after the same step."""
     tick = time.perf_counter()
-    for raw in _iterate(loader):
+    for i, raw in enumerate(_iterate(loader) if d is None else distributed.agreed(_iterate(loader), d, _DataError)):
         if cfg.max_steps is not None and pos.step >= cfg.max_steps:
             return "max_steps"
         b = prepare_batch(raw, norm, kind, uses_command, runtime)
-        gen = step_generator(cfg.seed, pos.step, runtime.device)
+        gen = step_generator(cfg.seed, pos.step, runtime.device, None if d is None else d.rank)
         b.image = augment_batch(b.image, cfg.augment, gen, inplace=True)
         if cfg.speed_dropout > 0.0:
             b.speed = drop_speed(b.speed, cfg.speed_dropout, gen)
         with runtime.autocast():
             loss, _, _ = compute_loss(model, b, cfg, norm)
+        size = b.image.shape[0]
+        weighted = loss
+        if d is not None and sizes is not None and size * d.world != sizes[i]:
+            # a short last batch split unevenly: DDP's mean over the ranks must be the mean over its samples
+            weighted = loss * (size * d.world / sizes[i])
         optimizer.zero_grad(set_to_none=True)
-        scaler.scale(loss).backward()
+        scaler.scale(weighted).backward()
         scaler.step(optimizer)
         scaler.update()
-        size = b.image.shape[0]
         value = float(loss.detach())
+        stop_all = over_all = False
+        if d is not None:
+            over = cfg.max_minutes is not None and (time.monotonic() - started) / 60.0 >= cfg.max_minutes
+            total, n, stops, overs = distributed.sum_across([value * size, size, _STOP["requested"], over], d)
+            value, size, stop_all, over_all = total / n, int(n), stops > 0, overs > 0
         if not math.isfinite(value):
             raise FloatingPointError(f"training loss became {value} at step {pos.step} (epoch {pos.epoch + 1})")
         now = time.perf_counter()
@@ -826,6 +913,12 @@ def _train_epoch(
         if pos.step % cfg.log_every == 0:
             writer.add_scalar("train/loss", value, pos.step)
             writer.add_scalar("train/lr", optimizer.param_groups[0]["lr"], pos.step)
+        if d is not None:
+            if over_all:
+                return "max_minutes"
+            if stop_all:
+                raise _StopRequested
+            continue
         if cfg.max_minutes is not None and (time.monotonic() - started) / 60.0 >= cfg.max_minutes:
             return "max_minutes"
         _check_stop()

@@ -3,12 +3,16 @@
 Settings come from, in order of precedence: the command line, `--config file.yaml`, the saved
 `config.yaml` of the run when resuming, then the defaults of `yawil.train.TrainConfig`.
 Only argparse is imported here; torch comes in with `run`.
+
+Under torchrun (`torchrun --nproc_per_node N -m yawil.cli train ...`) every rank runs this command; rank 0
+validates, writes the run folder and prints (docs/training.md, "Training on several processes or GPUs").
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import sys
 from typing import Any
 
@@ -79,6 +83,10 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     )  # fmt: skip
     p.add_argument("--no-augment", action="store_true", help="switch augmentation off")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
+    p.add_argument(
+        "--dist-backend", choices=("gloo", "nccl"), default=None,
+        help="under torchrun: the process-group backend (default: nccl on CUDA, gloo on the CPU)",
+    )  # fmt: skip
     for flag, dest, typ, text in _OPTIONS:
         p.add_argument(flag, dest=dest, type=typ, default=None, help=text)
     return p
@@ -151,14 +159,21 @@ def _file_settings(path: str) -> dict[str, Any]:
 
 
 def run(args: argparse.Namespace) -> int:
+    from yawil.distributed import WorldSizeError
     from yawil.train import train
 
+    rank = int(os.environ.get("RANK", "0") or 0) if int(os.environ.get("WORLD_SIZE", "1") or 1) > 1 else 0
     try:
         cfg = build_config(args)
-        result = train(cfg, resume=bool(args.resume))
+        result = train(cfg, resume=bool(args.resume), dist_backend=getattr(args, "dist_backend", None))
     except (ValueError, FileNotFoundError, FileExistsError) as err:  # bad settings or data: no traceback
-        print(f"yawil train: {err}", file=sys.stderr)
+        if rank == 0:
+            print(f"yawil train: {err}", file=sys.stderr)
+        elif not isinstance(err, WorldSizeError):  # said alike by every rank: rank 0 says it
+            print(f"yawil train (rank {rank}): {err}", file=sys.stderr)
         return 2
+    if rank != 0:
+        return 0
     last = result.metrics[-1] if result.metrics else None
     summary = f"val_loss {last['val_loss']:.4f}, best {result.best_val:.4f}" if last else "no epoch finished"
     print(

@@ -27,6 +27,7 @@ from yawil.train import (
     label_arrays,
     label_columns,
     predicted_actions,
+    reason_weights,
     train,
 )
 from yawil.train_cli import _OPTIONS, add_parser, build_config
@@ -351,6 +352,28 @@ def test_brake_fraction_draws_slowing_down_frames_at_the_asked_share() -> None:
         brake_weights(np.ones(10), np.zeros(9), 0.3)
     with pytest.raises(ValueError, match="brake_fraction"):
         TrainConfig(brake_fraction=1.0)
+
+
+def test_reason_fractions_draw_each_reason_at_its_share() -> None:
+    from yawil.data.schema import SPEED_REASONS
+
+    reason = np.zeros(4000, dtype=np.int8)  # cruise
+    reason[:100] = SPEED_REASONS.index("vehicle")
+    reason[100:600] = SPEED_REASONS.index("red_light")
+    p = reason_weights(reason, {"vehicle": 0.2})
+    assert p.sum() == pytest.approx(1.0) and p[0] > p[100] == p[-1]
+    drawn = np.array([i for b in epoch_batches(4000, 64, seed=1, epoch=0, p=p) for i in b])
+    assert abs(float((drawn < 100).mean()) - 0.2) < 0.03
+    with pytest.raises(ValueError, match="no frame whose expert reason is 'pedestrian'"):
+        reason_weights(reason, {"pedestrian": 0.1})
+    with pytest.raises(ValueError, match="nothing is left"):
+        reason_weights(np.zeros(10), {"cruise": 0.5})
+    with pytest.raises(ValueError, match="reason_fractions"):
+        TrainConfig(reason_fractions={"lorry": 0.1})
+    with pytest.raises(ValueError, match="reason_fractions"):
+        TrainConfig(reason_fractions={"vehicle": 0.6, "red_light": 0.5})
+    with pytest.raises(ValueError, match="not together with brake_fraction"):
+        TrainConfig(reason_fractions={"vehicle": 0.2}, brake_fraction=0.2)
 
 
 def test_brake_fraction_run_resumes_to_the_same_weights(tmp_path: Path) -> None:

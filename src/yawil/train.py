@@ -86,6 +86,10 @@ class TrainConfig:
     # Share of slowing-down frames (expert brake > BRAKE_LABEL at over BRAKE_MIN_SPEED) in each epoch, drawn
     # with replacement; None keeps the data's own share (about 0.07 in town01). Ours, not the paper's.
     brake_fraction: float | None = None
+    # Share of the draws per epoch for the frames of each named expert reason (schema-2 `speed_reason`, e.g.
+    # {"vehicle": 0.2}), the other frames sharing the rest; drawn with replacement. Why: the expert slows for a
+    # vehicle ahead on ~4 % of town01's frames, too few for a small net to learn to see the car. Ours.
+    reason_fractions: dict[str, float] = field(default_factory=dict)
     # Inertia countermeasure (CILRS, Codevilla et al. 2019): with this probability per training sample the
     # speed input is replaced by the training mean (0 once normalised), so the net cannot copy its speed.
     speed_dropout: float = 0.0
@@ -140,6 +144,14 @@ class TrainConfig:
         need(isinstance(self.progress, bool), "progress", "true or false")
         need(self.brake_fraction is None or (_is_num(self.brake_fraction) and 0.0 < self.brake_fraction < 1.0),
              "brake_fraction", "None or a number in (0, 1)")
+        from yawil.data.schema import SPEED_REASONS
+
+        need(isinstance(self.reason_fractions, dict) and all(
+            k in SPEED_REASONS and _is_num(v) and 0.0 < v < 1.0 for k, v in self.reason_fractions.items())
+             and sum(self.reason_fractions.values()) < 1.0, "reason_fractions",
+             f"a mapping of expert reasons ({', '.join(SPEED_REASONS)}) to shares in (0, 1) summing to under 1")
+        need(not (self.reason_fractions and self.brake_fraction is not None), "reason_fractions",
+             "not together with brake_fraction (both set the epoch's sampling)")
         need(_is_num(self.speed_dropout) and 0.0 <= self.speed_dropout <= 1.0, "speed_dropout", "a number in [0, 1]")
         need(_is_num(self.aux_weight) and self.aux_weight >= 0.0, "aux_weight", "a number >= 0")
         need(self.init_from is None or (isinstance(self.init_from, str) and bool(self.init_from)), "init_from",
@@ -305,6 +317,27 @@ def brake_weights(brake: np.ndarray, speed: np.ndarray, fraction: float) -> np.n
             f"(brake > {BRAKE_LABEL} at over {BRAKE_MIN_SPEED} m/s); both kinds are needed to rebalance"
         )
     return np.where(slowing, fraction / k, (1.0 - fraction) / (slowing.size - k))
+
+
+def reason_weights(reason: np.ndarray, fractions: Mapping[str, float]) -> np.ndarray:
+    """Sampling probabilities that give the frames of each named expert reason (SPEED_REASONS) its share of the
+    draws and the other frames the rest, uniform within each group."""
+    from yawil.data.schema import SPEED_REASONS
+
+    reason = np.asarray(reason, dtype=np.int64).reshape(-1)
+    p = np.zeros(reason.size, dtype=np.float64)
+    rest = np.ones(reason.size, dtype=bool)
+    for name, share in fractions.items():
+        group = reason == SPEED_REASONS.index(name)
+        if not group.any():
+            raise ValueError(f"reason_fractions: the training split has no frame whose expert reason is {name!r} "
+                             "(schema-1 data has no reasons; `yawil data stats` counts them)")
+        p[group] = share / group.sum()
+        rest &= ~group
+    if not rest.any():
+        raise ValueError("reason_fractions: every training frame is in a named group; nothing is left for the rest")
+    p[rest] = (1.0 - sum(fractions.values())) / rest.sum()
+    return p
 
 
 def sequential_batches(n: int, batch_size: int) -> list[list[int]]:
@@ -761,6 +794,9 @@ def _train(
     if cfg.brake_fraction is not None:
         brake, speed = label_columns(train_ds, ["brake", "speed"])
         p = brake_weights(brake, speed, cfg.brake_fraction)
+    elif cfg.reason_fractions:
+        (reason,) = label_columns(train_ds, ["speed_reason"])
+        p = reason_weights(reason, cfg.reason_fractions)
     while pos.epoch < cfg.epochs:
         if cfg.max_steps is not None and pos.step >= cfg.max_steps:
             stopped_by = "max_steps"

@@ -74,6 +74,11 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--config", metavar="YAML", help="settings file; command-line options override it")
     p.add_argument("--resume", action="store_true", help="continue the run in --out from its last.pt")
     p.add_argument(
+        "--oversample", action="append", default=[], metavar="REASON=SHARE",
+        help="give the frames where the expert's target speed is set by REASON (vehicle, red_light, pedestrian, ...; "
+             "schema-2 data) this share of each epoch's draws, e.g. --oversample vehicle=0.2; repeatable",
+    )  # fmt: skip
+    p.add_argument(
         "--model-arg", action="append", default=[], metavar="KEY=VALUE",
         help="model option (value parsed as JSON, else a string), e.g. --model-arg dropout=0.3",
     )  # fmt: skip
@@ -118,6 +123,8 @@ def overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
             over[dest] = getattr(args, dest)
     if args.model_arg:
         over["model_args"] = _key_values(args.model_arg, "--model-arg")
+    if getattr(args, "oversample", None):
+        over["reason_fractions"] = _key_values(args.oversample, "--oversample")
     augment = _key_values(args.augment, "--augment")
     if args.no_augment:
         augment["enabled"] = False

@@ -24,6 +24,7 @@ COMMANDS: dict[str, str] = {
     "export": "yawil.export",
     "bench": "yawil.bench.cli",
     "select": "yawil.bench.select",
+    "trace": "yawil.bench.trace",
     "report": "yawil.bench.report_cli",
     "experiment": "yawil.bench.experiments_cli",
     "explain": "yawil.explain_cli",

@@ -26,10 +26,13 @@ sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 
 from yawil import models  # noqa: E402
 from yawil.agent import Agent  # noqa: E402
-from yawil.augment import AugmentConfig, augment_batch  # noqa: E402
-from yawil.checkpoint import Norm, make_checkpoint, save_checkpoint  # noqa: E402
+from yawil.learn.augment import AugmentConfig, augment_batch  # noqa: E402
+from yawil.learn.config import TrainConfig  # noqa: E402
+from yawil.learn.loss import compute_loss  # noqa: E402
+from yawil.learn.sampling import Batch  # noqa: E402
+from yawil.policy.checkpoint import Norm, make_checkpoint, save_checkpoint  # noqa: E402
+from yawil.policy.runtime import Runtime  # noqa: E402
 from yawil.sim.types import Observation, Pose, RoadOption, Route  # noqa: E402
-from yawil.train import Batch, Runtime, TrainConfig, compute_loss  # noqa: E402
 
 MODES = {"fp32": ("fp32", "off"), "fp32+cl": ("fp32", "on"), "bf16+cl": ("bf16", "on")}
 

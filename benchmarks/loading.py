@@ -7,7 +7,7 @@ Writes a synthetic dataset (`yawil.data.synthetic`: smooth street-like images wi
 compression behaves as on rendered frames) into a temporary directory, then times
 `DrivingDataset` -> `DataLoader(batch_size=128, shuffle=True, num_workers=2)` -> uint8->float ->
 augmentation in the main process, as training does: none, torchvision v2 GaussianBlur + ColorJitter (batch-wise),
-and `yawil.augment.augment_batch` (the trainer's own, per-sample parameters).
+and `yawil.learn.augment.augment_batch` (the trainer's own, per-sample parameters).
 The files are in the page cache (just written): this measures decoding and batching, not the disk.
 Target: >= 300 samples/s (5x YILRatt's training throughput on this machine).
 """
@@ -41,7 +41,7 @@ def make(root: Path, frames: int, per_episode: int, **writer_kwargs: Any) -> tup
 def augmenter(kind: str) -> Any:
     """Batch augmentation in the main process: the trainer's (`yawil`), torchvision v2 blur + jitter, or none."""
     if kind == "yawil":
-        from yawil.augment import AugmentConfig, augment_batch
+        from yawil.learn.augment import AugmentConfig, augment_batch
 
         cfg, gen = AugmentConfig(), torch.Generator().manual_seed(0)
         return lambda x: augment_batch(x, cfg, gen, inplace=True)

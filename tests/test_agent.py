@@ -12,10 +12,11 @@ import torch
 
 from yawil import models
 from yawil.agent import Agent, PostProcess
-from yawil.checkpoint import Norm, make_checkpoint, save_checkpoint
 from yawil.guidance import GuidanceConfig, compute_guidance
+from yawil.learn.sampling import prepare_batch
+from yawil.policy.checkpoint import Norm, make_checkpoint, save_checkpoint
+from yawil.policy.runtime import resolve_runtime
 from yawil.sim.types import Control, Observation, Pose, RoadOption, Route
-from yawil.train import prepare_batch, resolve_runtime
 
 torch.set_num_threads(2)
 K = 4

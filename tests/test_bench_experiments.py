@@ -42,8 +42,8 @@ def test_noise_candidates(tmp_path: Path) -> None:
 
 def _checkpoint(tmp_path: Path, name: str) -> Path:
     from yawil import models
-    from yawil.checkpoint import Norm, make_checkpoint, save_checkpoint
     from yawil.guidance import GuidanceConfig
+    from yawil.policy.checkpoint import Norm, make_checkpoint, save_checkpoint
 
     model = models.create(name, seed=0)
     dim = model.guidance_dim if model.guidance else 0

@@ -214,7 +214,7 @@ def test_a_full_disk_stops_collection_in_one_clear_error(tmp_path: Path, monkeyp
 def test_a_failed_checkpoint_write_names_the_full_disk(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     import shutil
 
-    import yawil.checkpoint as ck
+    import yawil.policy.checkpoint as ck
 
     def fail(*a: object, **k: object) -> None:
         raise RuntimeError("[enforce fail at inline_container.cc:664] . unexpected pos 4416 vs 4310")

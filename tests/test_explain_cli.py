@@ -9,10 +9,10 @@ import numpy as np
 import pytest
 
 from yawil import explain, models, video
-from yawil.checkpoint import Norm, make_checkpoint, save_checkpoint
 from yawil.cli import main
 from yawil.data.synthetic import write_synthetic_dataset
 from yawil.guidance import GuidanceConfig
+from yawil.policy.checkpoint import Norm, make_checkpoint, save_checkpoint
 
 
 def _checkpoint(tmp_path: Path, name: str, k: int) -> Path:

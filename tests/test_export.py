@@ -13,9 +13,9 @@ import pytest
 import torch
 
 from yawil import models
-from yawil.checkpoint import Norm, make_checkpoint, save_checkpoint
 from yawil.cli import main
-from yawil.export import check_onnx, export_onnx
+from yawil.learn.export import check_onnx, export_onnx
+from yawil.policy.checkpoint import Norm, make_checkpoint, save_checkpoint
 
 torch.set_num_threads(2)
 

@@ -9,9 +9,9 @@ Every module belongs to a layer, and the layers follow the data flow, lowest fir
      4 gym_env    yawil.gym_env (the Gymnasium wrapper: a world, guidance and the expert's action)
      5 data       yawil.data (schema, files, dataset, collection)
      6 models     yawil.models
-     7 checkpoint yawil.checkpoint (format, normalisation statistics, model rebuild)
+     7 checkpoint yawil.policy.checkpoint (format, normalisation statistics, model rebuild)
      8 policy     yawil.policy (the model-input contract, runtime)
-     9 learn      yawil.augment, yawil.distributed, yawil.train, yawil.train_cli, yawil.export
+     9 learn      yawil.learn.augment, yawil.learn.distributed, yawil.train, yawil.learn.cli, yawil.learn.export
     10 agent      yawil.agent
     11 bench      yawil.bench (suites, route files, runner, metrics, report, experiments, select)
     12 dagger     yawil.dagger
@@ -26,7 +26,7 @@ import is still a dependency):
    the top). A CLI module has its package's layer, so it may import its own package and anything below it;
    the other modules of that layer never import it (within a layer, the command line sits on top: the
    library does not go through argparse). A module of a higher layer may (as `yawil.dagger`'s command line
-   uses `yawil.train_cli`'s KEY=VALUE parser).
+   uses `yawil.learn.cli`'s KEY=VALUE parser).
 3. Nothing under `yawil.sim` or in `yawil.guidance` imports torch (the simulator and guidance are numpy).
 4. `yawil.models` imports nothing of `yawil.sim` (the models take tensors only).
 
@@ -54,9 +54,8 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("gym_env", ("yawil.gym_env",)),
     ("data", ("yawil.data",)),
     ("models", ("yawil.models",)),
-    ("checkpoint", ("yawil.checkpoint",)),
     ("policy", ("yawil.policy",)),
-    ("learn", ("yawil.augment", "yawil.distributed", "yawil.train", "yawil.train_cli", "yawil.export")),
+    ("learn", ("yawil.learn",)),
     ("agent", ("yawil.agent",)),
     ("bench", ("yawil.bench",)),
     ("dagger", ("yawil.dagger",)),
@@ -199,8 +198,8 @@ def _tree(root: Path, files: dict[str, str]) -> Path:
           "bench/runner.py": "def f():\n    import yawil.bench.cli\n"},
          ["yawil.bench.runner [bench] -> yawil.bench.cli [bench]"]),
         # downward imports, a higher layer using a lower layer's CLI helper, and importlib with a constant
-        ({"agent.py": "import yawil.sim\n", "sim/__init__.py": "", "train_cli.py": "", "dagger.py":
-          "from yawil.train_cli import x\nimport importlib\nimportlib.import_module('yawil.agent')\n"}, []),
+        ({"agent.py": "import yawil.sim\n", "sim/__init__.py": "", "learn/__init__.py": "", "learn/cli.py": "", "dagger.py":
+          "from yawil.learn.cli import x\nimport importlib\nimportlib.import_module('yawil.agent')\n"}, []),
         ({"sim/__init__.py": "import importlib\nimportlib.import_module('yawil.agent')\n", "agent.py": ""},
          ["yawil.sim [sim] -> yawil.agent [agent]"]),
         ({"newthing.py": ""}, ["yawil.newthing: in no layer"]),

@@ -11,9 +11,12 @@ import torch
 
 from yawil import models
 from yawil.agent import Agent, SpeedControl
-from yawil.checkpoint import Norm, load_checkpoint
 from yawil.data.synthetic import write_synthetic_dataset
-from yawil.train import TrainConfig, aux_loss, drop_speed, train
+from yawil.learn.config import TrainConfig
+from yawil.learn.loop import train
+from yawil.learn.loss import aux_loss
+from yawil.learn.sampling import drop_speed
+from yawil.policy.checkpoint import Norm, load_checkpoint
 
 torch.set_num_threads(1)
 K = 4
@@ -139,7 +142,7 @@ def test_speed_control_brakes_for_a_stop_and_starts_for_a_go() -> None:
 
 
 def test_bce_brake_loss_learns_the_mean_where_l1_learns_the_median() -> None:
-    from yawil.train import bce_of_probabilities
+    from yawil.learn.loss import bce_of_probabilities
 
     target = torch.tensor([0.0] * 9 + [1.0])  # braking on one frame in ten, the image the same
     grid = torch.linspace(0.01, 0.99, 99)

@@ -15,7 +15,8 @@ from yawil.bench.runner import AgentSpec, run_benchmark
 from yawil.bench.suites import episodes
 from yawil.data import DrivingDataset, read_manifest
 from yawil.data.collect import collect
-from yawil.train import TrainConfig, train
+from yawil.learn.config import TrainConfig
+from yawil.learn.loop import train
 
 
 def test_collect_train_drive(tmp_path: Path) -> None:

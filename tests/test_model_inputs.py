@@ -16,10 +16,10 @@ from torch.utils.data import default_collate
 from test_agent import K, checkpoint, observation
 from yawil import explain
 from yawil.agent import Agent
-from yawil.checkpoint import Norm
 from yawil.data.dataset import DrivingDataset
 from yawil.data.reader import open_episode
 from yawil.data.synthetic import write_synthetic_dataset
+from yawil.policy.checkpoint import Norm
 from yawil.policy.inputs import InputSpec, guidance_key, input_names
 from yawil.policy.runtime import resolve_runtime
 from yawil.sim.types import RoadOption, command_index
@@ -98,7 +98,7 @@ def test_a_fixed_checkpoint_acts_the_same_through_agent_explain_and_onnx(tmp_pat
     pytest.importorskip("onnxruntime")
     import onnxruntime as ort
 
-    from yawil.export import export_onnx
+    from yawil.learn.export import export_onnx
 
     path, _ = checkpoint(tmp_path, "yaw-guided", guidance_dim=K, dropout=0.0)
     agent = Agent.from_checkpoint(path, precision="fp32")

@@ -18,19 +18,13 @@ import torch
 import yaml
 
 from yawil import models
-from yawil.augment import AugmentConfig, augment_batch, blur
-from yawil.checkpoint import REQUIRED_KEYS, Norm, load_checkpoint, save_checkpoint
-from yawil.train import (
-    TrainConfig,
-    brake_weights,
-    epoch_batches,
-    label_arrays,
-    label_columns,
-    predicted_actions,
-    reason_weights,
-    train,
-)
-from yawil.train_cli import _OPTIONS, add_parser, build_config
+from yawil.learn.augment import AugmentConfig, augment_batch, blur
+from yawil.learn.cli import _OPTIONS, add_parser, build_config
+from yawil.learn.config import TrainConfig
+from yawil.learn.loop import train
+from yawil.learn.loss import predicted_actions
+from yawil.learn.sampling import brake_weights, epoch_batches, label_arrays, label_columns, reason_weights
+from yawil.policy.checkpoint import REQUIRED_KEYS, Norm, load_checkpoint, save_checkpoint
 
 torch.set_num_threads(2)
 K = 4
@@ -195,7 +189,7 @@ def test_a_signal_stops_between_steps_and_resume_is_exact(tmp_path: Path, monkey
                                                           sig: int) -> None:
     """Ctrl-C or SIGTERM during a step (here: while its batch is prepared) lets the step finish, saves, and
     the resumed run ends with the uninterrupted run's weights, BatchNorm statistics included."""
-    import yawil.train as train_module
+    import yawil.learn.loop as train_module
 
     full = train(small(tmp_path, "full", epochs=1), splits=splits(64))  # 4 batches of 16
     real_step = train_module.prepare_batch
@@ -241,7 +235,7 @@ def test_an_unreadable_batch_saves_the_run_and_names_the_problem(tmp_path: Path)
 
 
 def test_a_second_ctrl_c_stops_at_once_without_saving(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
-    import yawil.train as train_module
+    import yawil.learn.loop as train_module
 
     real_step = train_module.prepare_batch
     calls = {"n": 0}
@@ -488,7 +482,7 @@ def test_a_one_episode_dataset_trains_without_validation(tmp_path: Path, capsys:
 def test_pretrained_backbone_is_loaded(tmp_path: Path) -> None:
     import torchvision
 
-    from yawil.train import build_model
+    from yawil.learn.loop import build_model
 
     net = torchvision.models.resnet34()
     torch.nn.init.constant_(net.conv1.weight, 0.125)

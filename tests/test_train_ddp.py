@@ -22,9 +22,10 @@ import torch
 import torch.multiprocessing as mp
 
 from yawil import models
-from yawil.checkpoint import load_checkpoint
-from yawil.distributed import WorldSizeError, shard
-from yawil.train import TrainConfig, train
+from yawil.learn.config import TrainConfig
+from yawil.learn.distributed import WorldSizeError, shard
+from yawil.learn.loop import train
+from yawil.policy.checkpoint import load_checkpoint
 
 K = 4
 B = 8  # global batch: 4 per rank
@@ -70,7 +71,7 @@ def _worker(rank: int, world: int, ports: list[int], data: Path, tmp: Path) -> N
     """One rank, as torchrun would start it; runs the phases one after the other, each a process group."""
     os.environ.update(RANK=str(rank), WORLD_SIZE=str(world), LOCAL_RANK=str(rank), LOCAL_WORLD_SIZE=str(world),
                       MASTER_ADDR="127.0.0.1")  # fmt: skip
-    import yawil.train as train_module
+    import yawil.learn.loop as train_module
 
     torch.optim.Adam = Adam4  # type: ignore[misc]
     os.environ["MASTER_PORT"] = str(ports[0])

@@ -21,9 +21,9 @@ from typing import Any
 import numpy as np
 import torch
 
-from yawil.checkpoint import Norm, load_checkpoint, model_from_checkpoint
 from yawil.expert import ExpertConfig
 from yawil.guidance import COMMAND_NOISE_MODES, YAW_NOISE_MODES, CommandNoise, GuidanceConfig
+from yawil.policy.checkpoint import Norm, load_checkpoint, model_from_checkpoint
 from yawil.policy.inputs import (
     InputSpec,
     ModelInputs,

@@ -225,7 +225,8 @@ class DaggerRun:
                 "policy": str(policy)}
 
     def train(self, r: int) -> dict[str, Any]:
-        from yawil.train import TrainConfig, train
+        from yawil.learn.config import TrainConfig
+        from yawil.learn.loop import train
 
         cfg = self.cfg
         base = {"model": cfg.model, "batch_size": cfg.batch_size, "lr": cfg.lr, "seed": cfg.seed,
@@ -303,8 +304,8 @@ def _expert_args(items: Sequence[str]) -> dict[str, float]:
 
 
 def _train_args(items: Sequence[str]) -> dict[str, Any]:
-    from yawil.train import TrainConfig
-    from yawil.train_cli import _key_values
+    from yawil.learn.cli import _key_values
+    from yawil.learn.config import TrainConfig
 
     known = {f.name for f in fields(TrainConfig)} - {"model", "data", "out", "max_steps", "init_from"}
     out = _key_values(list(items), "--train-arg")
@@ -326,7 +327,7 @@ def run(args: argparse.Namespace) -> int:
             round0=args.round0, expert_data=args.expert_data, speed_control=args.speed_control,
             expert_args=_expert_args(args.expert_arg),
         )
-        from yawil.train import TrainConfig
+        from yawil.learn.config import TrainConfig
 
         TrainConfig.from_dict({"model": cfg.model, **cfg.train_args}, "--train-arg")  # bad values fail before any work
         DaggerRun(Path(args.out), cfg, log=lambda m: print(f"[dagger {time.strftime('%H:%M:%S')}] {m}", flush=True),

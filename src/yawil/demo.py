@@ -119,7 +119,8 @@ def _train(out: Path, stage: str, what: str, model: str, data: Path, run_dir: Pa
     info = _done(out, stage)
     if info is not None:
         return info
-    from yawil.train import TrainConfig, train
+    from yawil.learn.config import TrainConfig
+    from yawil.learn.loop import train
 
     _say(f"{what} for at most {max_steps} steps / {max_minutes} min -> {run_dir}")
     t = time.perf_counter()

@@ -110,7 +110,8 @@ def stages(out: Path, p: ReproduceProfile, pretrained: str | None, seed: int = 0
 
     def train_stage(run_name: str, model: str, weights: str | None) -> Callable[[], dict[str, Any]]:
         def fn() -> dict[str, Any]:
-            from yawil.train import TrainConfig, train
+            from yawil.learn.config import TrainConfig
+            from yawil.learn.loop import train
 
             run_dir = out / "runs" / run_name
             cfg = TrainConfig(model=model, data=[str(data)], out=str(run_dir), epochs=p.epochs,

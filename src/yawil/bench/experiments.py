@@ -129,7 +129,8 @@ def _trained(out: Path, dataset: str, model: str) -> Path | None:
 
 
 def train_stage(out: Path, data: Path, dataset: str, model: str, p: Profile, seed: int, log: Log) -> Path:
-    from yawil.train import TrainConfig, train
+    from yawil.learn.config import TrainConfig
+    from yawil.learn.loop import train
 
     run = out / "models" / dataset / model
     best = run / "best.pt"

@@ -85,8 +85,8 @@ def select_checkpoint(checkpoints: Sequence[Path], out: Path, routes: int = 3, w
     """Drive every candidate on the validation set (resumable per episode), write OUT/selection.json."""
     from yawil.bench.records import read_records
     from yawil.bench.runner import AgentSpec, run_benchmark
-    from yawil.checkpoint import load_checkpoint
     from yawil.fileio import write_json_atomic
+    from yawil.policy.checkpoint import load_checkpoint
 
     if not checkpoints:
         raise ValueError("select: give at least one checkpoint")
@@ -140,7 +140,7 @@ def run(args: argparse.Namespace) -> int:
         result = select_checkpoint(paths, Path(args.out), args.routes, args.workers, not args.no_progress,
                                    args.speed_control)
         if args.link:
-            from yawil.train import link_or_copy
+            from yawil.learn.artifacts import link_or_copy
 
             link_or_copy(Path(result["selected"]), Path(args.link))
     except (ValueError, OSError) as err:

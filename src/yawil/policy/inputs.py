@@ -27,8 +27,8 @@ import numpy as np
 import torch
 from torch import Tensor
 
-from yawil.checkpoint import Norm
 from yawil.guidance import GUIDANCE_KINDS, GuidanceConfig, compute_guidance
+from yawil.policy.checkpoint import Norm
 from yawil.policy.runtime import Runtime
 from yawil.sim.types import Observation, command_index
 

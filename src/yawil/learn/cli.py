@@ -1,7 +1,7 @@
 """`yawil train`: train a model on collected episodes with the paper's settings as defaults.
 
 Settings come from, in order of precedence: the command line, `--config file.yaml`, the saved
-`config.yaml` of the run when resuming, then the defaults of `yawil.train.TrainConfig`.
+`config.yaml` of the run when resuming, then the defaults of `yawil.learn.config.TrainConfig`.
 Only argparse is imported here; torch comes in with `run`.
 
 Under torchrun (`torchrun --nproc_per_node N -m yawil.cli train ...`) every rank runs this command; rank 0
@@ -141,7 +141,7 @@ def build_config(args: argparse.Namespace) -> Any:
 
     import yaml
 
-    from yawil.train import TrainConfig, merge_settings
+    from yawil.learn.config import TrainConfig, merge_settings
 
     over = overrides_from_args(args)
     base: dict[str, Any] = {}
@@ -166,8 +166,8 @@ def _file_settings(path: str) -> dict[str, Any]:
 
 
 def run(args: argparse.Namespace) -> int:
-    from yawil.distributed import WorldSizeError
-    from yawil.train import train
+    from yawil.learn.distributed import WorldSizeError
+    from yawil.learn.loop import train
 
     rank = int(os.environ.get("RANK", "0") or 0) if int(os.environ.get("WORLD_SIZE", "1") or 1) > 1 else 0
     try:

@@ -2,7 +2,7 @@
 
     torchrun --nproc_per_node 2 -m yawil.cli train --data data/town01 --out runs/x --batch-size 512
 
-`yawil.train` calls `start` when WORLD_SIZE > 1 in the environment (torchrun sets it, with RANK, LOCAL_RANK,
+`yawil.learn.loop` calls `start` when WORLD_SIZE > 1 in the environment (torchrun sets it, with RANK, LOCAL_RANK,
 MASTER_ADDR and MASTER_PORT) and runs today's single-process code otherwise. Under torchrun every rank
 builds the same epoch order and takes its slice of each global batch (`rank_batches`); BatchNorm layers
 become SyncBatchNorm (`sync_batchnorm`), so that W ranks with B / W samples each compute what one process
@@ -74,7 +74,7 @@ def start(device_type: str, backend: str | None = None) -> Dist:
     """Join (or, when the caller has not, initialise) the process group of this torchrun job."""
     found = world_from_env()
     if found is None:
-        raise ValueError("yawil.distributed.start: WORLD_SIZE is not > 1 in the environment (not under torchrun)")
+        raise ValueError("yawil.learn.distributed.start: WORLD_SIZE is not > 1 in the environment (not under torchrun)")
     rank, world, local_rank, local_world = found
     if device_type == "cuda":
         if local_rank >= torch.cuda.device_count():

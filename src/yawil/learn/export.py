@@ -98,8 +98,8 @@ def export_onnx(checkpoint: str | Path, onnx_path: str | Path, opset: int = OPSE
     import onnx
     import torch
 
-    from yawil.checkpoint import load_checkpoint, model_from_checkpoint
     from yawil.fileio import default_file_mode
+    from yawil.policy.checkpoint import load_checkpoint, model_from_checkpoint
     from yawil.policy.inputs import ModelInputs
 
     if opset < 17:
@@ -168,7 +168,7 @@ def check_onnx(checkpoint: str | Path, onnx_path: str | Path, batch: int = 4, se
     import onnxruntime as ort
     import torch
 
-    from yawil.checkpoint import load_checkpoint, model_from_checkpoint
+    from yawil.policy.checkpoint import load_checkpoint, model_from_checkpoint
 
     model = model_from_checkpoint(load_checkpoint(checkpoint)).eval()
     names = input_names(model)

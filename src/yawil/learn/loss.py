@@ -1,0 +1,80 @@
+"""The training loss: actions (L1 / MSE / smooth L1, or BCE on the brake), speed, and the auxiliary head."""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import Any
+
+import torch
+from torch import Tensor
+
+from yawil.learn.config import TrainConfig
+from yawil.learn.sampling import Batch
+from yawil.policy.checkpoint import Norm
+
+
+# ------------------------------------------------------------------------------------------------- loss
+def _criterion(name: str) -> Callable[..., Tensor]:
+    return {
+        "l1": torch.nn.functional.l1_loss,
+        "mse": torch.nn.functional.mse_loss,
+        "smooth_l1": torch.nn.functional.smooth_l1_loss,
+    }[name]
+
+
+def predicted_actions(model: torch.nn.Module, out: Any, command: Tensor | None) -> Tensor:
+    """The actions the loss sees: for branched models the branch of each sample's command."""
+    if getattr(model, "uses_command", False) and out.branches is not None:
+        if command is None:
+            raise ValueError(f"model {getattr(model, 'name', '?')} is branched and needs the command")
+        return out.branches[torch.arange(command.shape[0], device=command.device), command]
+    return out.actions
+
+
+def compute_loss(
+    model: torch.nn.Module, batch: Batch, cfg: TrainConfig, norm: Norm | None = None
+) -> tuple[Tensor, Tensor, Any]:
+    """alpha * L(actions) + beta * L(speed) (+ aux_weight * the aux loss), in float32 whatever the autocast."""
+    out = model(batch.image, batch.speed, guidance=batch.guidance, command=batch.command)
+    pred = predicted_actions(model, out, batch.command).float()
+    crit = _criterion(cfg.loss)
+    if cfg.brake_loss == "bce":
+        act = (2.0 * crit(pred[:, :2], batch.action[:, :2]) + bce_of_probabilities(pred[:, 2], batch.action[:, 2])) / 3.0
+    else:
+        act = crit(pred, batch.action)
+    loss = cfg.alpha * act + cfg.beta * crit(out.speed.float(), batch.speed)
+    if cfg.aux_weight > 0.0:
+        if out.aux is None:
+            raise ValueError(f"aux_weight={cfg.aux_weight} but model {cfg.model} has no aux head (--model-arg aux=true)")
+        if batch.privileged is None or norm is None:
+            raise ValueError("aux_weight > 0 needs the privileged labels of the samples (schema-2 data) and the norm")
+        loss = loss + cfg.aux_weight * aux_loss(out.aux.float(), batch.privileged, norm, cfg.loss)
+    return loss, pred, out
+
+
+def bce_of_probabilities(p: Tensor, target: Tensor, eps: float = 1e-6) -> Tensor:
+    """Mean binary cross-entropy of probabilities (soft targets allowed), written out so that it runs under
+    autocast (torch refuses `binary_cross_entropy` there); float32 and clamped."""
+    p = p.float().clamp(eps, 1.0 - eps)
+    t = target.float()
+    return -(t * p.log() + (1.0 - t) * (1.0 - p).log()).mean()
+
+
+def aux_targets(privileged: Tensor, norm: Norm) -> tuple[Tensor, Tensor]:
+    """(targets in the aux head's scale, mask of known ones), both [B, 4]; see models.base.AUX_NAMES."""
+    from yawil.data.schema import LEAD_RANGE
+
+    ts, ld, ls, light = privileged.unbind(dim=1)
+    target = torch.stack([norm.speed(ts[:, None])[:, 0], ld / LEAD_RANGE, norm.speed(ls[:, None])[:, 0], light], dim=1)
+    known = torch.stack([ts.isfinite(), ld.isfinite(), ls.isfinite(), light >= 0], dim=1)
+    return torch.where(known, target, torch.zeros_like(target)), known
+
+
+def aux_loss(aux: Tensor, privileged: Tensor, norm: Norm, loss: str = "l1") -> Tensor:
+    """Mean over the known labels: regression terms with the action loss's criterion, BCE for the light."""
+    target, known = aux_targets(privileged, norm)
+    crit = _criterion(loss)
+    w = known.float()
+    reg = crit(aux[:, :3], target[:, :3], reduction="none") * w[:, :3]
+    bce = torch.nn.functional.binary_cross_entropy_with_logits(aux[:, 3], target[:, 3], reduction="none") * w[:, 3]
+    return (reg.sum() + bce.sum()) / w.sum().clamp_min(1.0)

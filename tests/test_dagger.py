@@ -12,12 +12,12 @@ import pytest
 
 from test_collect import LineWorld, small_cfg
 from yawil.bench.select import BenchmarkRoutes, validation_episodes
-from yawil.dagger import BENCH_WORLD_SEED_LIMIT, DaggerConfig, DaggerRun
 from yawil.data.collect import CollectConfig, Learner, OnPolicy, collect, plan_episode, run_episode
 from yawil.data.manifest import read_manifest
 from yawil.data.reader import open_episode
 from yawil.data.schema import DRIVERS
 from yawil.data.writer import DatasetWriter
+from yawil.pipelines.dagger import BENCH_WORLD_SEED_LIMIT, DaggerConfig, DaggerRun
 from yawil.sim.types import Control, Observation
 
 LEARNER, TAKEOVER, EXPERT = DRIVERS.index("learner"), DRIVERS.index("takeover"), DRIVERS.index("expert")
@@ -154,7 +154,7 @@ def test_dagger_config_is_checked() -> None:
 def test_the_dagger_learner_drives_as_benched(tmp_path: Path) -> None:
     """With speed_control the learner's throttle and brake come from its aux head's target speed."""
     from test_agent import checkpoint
-    from yawil.dagger import load_learner
+    from yawil.pipelines.dagger import load_learner
 
     path, _ = checkpoint(tmp_path, "yilratt", aux=True)
     assert load_learner(str(path), 1, True).speed_control is not None

@@ -8,9 +8,10 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from yawil import explain, models, video
+from yawil import models, video
 from yawil.cli import main
 from yawil.data.synthetic import write_synthetic_dataset
+from yawil.explain import attention, figures
 from yawil.guidance import GuidanceConfig
 from yawil.policy.checkpoint import Norm, make_checkpoint, save_checkpoint
 
@@ -41,11 +42,11 @@ def test_record_maps_are_probability_maps(tmp_path: Path) -> None:
     write_synthetic_dataset(tmp_path / "data", episodes=1, frames=3, k=15)
     agent = Agent.from_checkpoint(_checkpoint(tmp_path, "yilratt", 15))
     with open_episode(next((tmp_path / "data").rglob("*.h5"))) as ep:
-        item = explain.explain_record(agent, ep[0])
+        item = attention.explain_record(agent, ep[0])
     assert len(item.maps) == 3
     for m in item.maps:
         assert np.all(m >= 0) and float(m.sum()) == pytest.approx(1.0, abs=1e-3)
-    assert explain.overlay(item.image, item.maps[0]).shape == item.image.shape
+    assert figures.overlay(item.image, item.maps[0]).shape == item.image.shape
 
 
 def test_explain_episode_video_has_the_frames(tmp_path: Path) -> None:
@@ -63,11 +64,11 @@ def test_episode_flags_default_to_the_episode_video() -> None:
     module level, so it states the defaults itself: this keeps the two the same)."""
     import argparse
 
-    from yawil.explain_cli import add_parser
+    from yawil.explain.cli import add_parser
 
     parser = argparse.ArgumentParser()
     add_parser(parser.add_subparsers())
     args = parser.parse_args(["explain", "--checkpoint", "c.pt", "--episode", "--out", "o"])
-    for field in dataclasses.fields(explain.EpisodeVideo):
-        assert getattr(args, field.name) == getattr(explain.EpisodeVideo(), field.name), field.name
-    assert args.alpha == explain.DEFAULT_ALPHA
+    for field in dataclasses.fields(attention.EpisodeVideo):
+        assert getattr(args, field.name) == getattr(attention.EpisodeVideo(), field.name), field.name
+    assert args.alpha == figures.DEFAULT_ALPHA

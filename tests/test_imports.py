@@ -3,21 +3,19 @@
 Every module belongs to a layer, and the layers follow the data flow, lowest first:
 
      0 base       yawil (the package: version, Gymnasium registration), fileio, locking, stages, video
-     1 sim        yawil.sim (both worlds, types, criteria, the CARLA backend)
+     1 sim        yawil.sim (both worlds, types, the episode judge and criteria, the CARLA backend)
      2 guidance   yawil.guidance (a route -> a guidance vector)
      3 expert     yawil.expert
      4 gym_env    yawil.gym_env (the Gymnasium wrapper: a world, guidance and the expert's action)
      5 data       yawil.data (schema, files, dataset, collection)
      6 models     yawil.models
-     7 checkpoint yawil.policy.checkpoint (format, normalisation statistics, model rebuild)
-     8 policy     yawil.policy (the model-input contract, runtime)
-     9 learn      yawil.learn.augment, yawil.learn.distributed, yawil.train, yawil.learn.cli, yawil.learn.export
-    10 agent      yawil.agent
-    11 bench      yawil.bench (suites, route files, runner, metrics, report, experiments, select)
-    12 dagger     yawil.dagger
-    13 explain    yawil.explain, yawil.explain_cli
-    14 pipelines  yawil.demo, yawil.reproduce
-    15 command    yawil.cli
+     7 policy     yawil.policy (checkpoint format and model rebuild, the model-input contract, runtime)
+     8 learn      yawil.learn (config, sampling, loss, validation, loop, augmentation, DDP, ONNX export)
+     9 agent      yawil.agent
+    10 bench      yawil.bench (suites, route files, runner, metrics, report, experiments, select)
+    11 explain    yawil.explain (attention maps, figures, videos)
+    12 pipelines  yawil.pipelines (demo, reproduce, dagger)
+    13 command    yawil.cli
 
 The rules (every `import` and `from ... import` counts, at module level or inside a function, since a lazy
 import is still a dependency):
@@ -25,8 +23,8 @@ import is still a dependency):
 2. CLI modules are the command layer of their package: `cli.py`, `*_cli.py` and `__main__.py` (and `yawil.cli`,
    the top). A CLI module has its package's layer, so it may import its own package and anything below it;
    the other modules of that layer never import it (within a layer, the command line sits on top: the
-   library does not go through argparse). A module of a higher layer may (as `yawil.dagger`'s command line
-   uses `yawil.learn.cli`'s KEY=VALUE parser).
+   library does not go through argparse). A module of a higher layer may (as `yawil.pipelines.dagger`'s
+   command line uses `yawil.learn.cli`'s KEY=VALUE parser).
 3. Nothing under `yawil.sim` or in `yawil.guidance` imports torch (the simulator and guidance are numpy).
 4. `yawil.models` imports nothing of `yawil.sim` (the models take tensors only).
 
@@ -58,9 +56,8 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("learn", ("yawil.learn",)),
     ("agent", ("yawil.agent",)),
     ("bench", ("yawil.bench",)),
-    ("dagger", ("yawil.dagger",)),
-    ("explain", ("yawil.explain", "yawil.explain_cli")),
-    ("pipelines", ("yawil.demo", "yawil.reproduce")),
+    ("explain", ("yawil.explain",)),
+    ("pipelines", ("yawil.pipelines",)),
     ("command", ("yawil.cli",)),
 )
 NO_TORCH = ("yawil.sim", "yawil.guidance")  # rule 3
@@ -198,8 +195,8 @@ def _tree(root: Path, files: dict[str, str]) -> Path:
           "bench/runner.py": "def f():\n    import yawil.bench.cli\n"},
          ["yawil.bench.runner [bench] -> yawil.bench.cli [bench]"]),
         # downward imports, a higher layer using a lower layer's CLI helper, and importlib with a constant
-        ({"agent.py": "import yawil.sim\n", "sim/__init__.py": "", "learn/__init__.py": "", "learn/cli.py": "", "dagger.py":
-          "from yawil.learn.cli import x\nimport importlib\nimportlib.import_module('yawil.agent')\n"}, []),
+        ({"agent.py": "import yawil.sim\n", "sim/__init__.py": "", "learn/__init__.py": "", "learn/cli.py": "",
+          "pipelines/__init__.py": "", "pipelines/dagger.py": "from yawil.learn.cli import x\nimport importlib\nimportlib.import_module('yawil.agent')\n"}, []),
         ({"sim/__init__.py": "import importlib\nimportlib.import_module('yawil.agent')\n", "agent.py": ""},
          ["yawil.sim [sim] -> yawil.agent [agent]"]),
         ({"newthing.py": ""}, ["yawil.newthing: in no layer"]),

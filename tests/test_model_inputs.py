@@ -14,11 +14,11 @@ import torch
 from torch.utils.data import default_collate
 
 from test_agent import K, checkpoint, observation
-from yawil import explain
 from yawil.agent import Agent
 from yawil.data.dataset import DrivingDataset
 from yawil.data.reader import open_episode
 from yawil.data.synthetic import write_synthetic_dataset
+from yawil.explain import attention
 from yawil.policy.checkpoint import Norm
 from yawil.policy.inputs import InputSpec, guidance_key, input_names
 from yawil.policy.runtime import resolve_runtime
@@ -112,7 +112,7 @@ def test_a_fixed_checkpoint_acts_the_same_through_agent_explain_and_onnx(tmp_pat
         # heat maps: the same frame as a stored record (its guidance as the collector would store it)
         record = SimpleNamespace(image=obs.image, speed=obs.speed, command=int(obs.command),
                                  guidance_yaw=agent.last.guidance, guidance_xy=None, guidance_sim_yaw=None)
-        item = explain.explain_record(agent, record)
+        item = attention.explain_record(agent, record)
         assert (item.steer, item.throttle, item.brake) == (control.steer, control.throttle, control.brake)
         assert item.speed == agent.last.speed
         # ONNX: the contract's inputs by name, in the graph's order

@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 
 from yawil.cli import main
-from yawil.reproduce import PROFILES, stages
+from yawil.pipelines.reproduce import PROFILES, stages
 
 
 def test_stages_cover_every_table(tmp_path: Path) -> None:

@@ -20,16 +20,16 @@ COMMANDS: dict[str, str] = {
     "data": "yawil.data.cli",
     "models": "yawil.models.cli",
     "train": "yawil.learn.cli",
-    "dagger": "yawil.dagger",
+    "dagger": "yawil.pipelines.dagger",
     "export": "yawil.learn.export",
     "bench": "yawil.bench.cli",
     "select": "yawil.bench.select",
     "trace": "yawil.bench.trace",
     "report": "yawil.bench.report_cli",
     "experiment": "yawil.bench.experiments_cli",
-    "explain": "yawil.explain_cli",
-    "demo": "yawil.demo",
-    "reproduce": "yawil.reproduce",
+    "explain": "yawil.explain.cli",
+    "demo": "yawil.pipelines.demo",
+    "reproduce": "yawil.pipelines.reproduce",
 }
 
 

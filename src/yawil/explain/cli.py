@@ -41,7 +41,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
 def run(args: argparse.Namespace) -> int:
     from yawil.agent import Agent
-    from yawil.explain import EpisodeVideo, explain_episode, explain_frames
+    from yawil.explain.attention import EpisodeVideo, explain_episode, explain_frames
 
     if args.count < 1 or args.steps < 1 or args.every < 1:
         raise SystemExit("yawil explain: --count, --steps and --every must be >= 1")

@@ -143,7 +143,7 @@ def stages(out: Path, p: ReproduceProfile, pretrained: str | None, seed: int = 0
 
     def explain_stage() -> dict[str, Any]:
         from yawil.agent import Agent
-        from yawil.explain import EpisodeVideo, explain_episode, explain_frames
+        from yawil.explain.attention import EpisodeVideo, explain_episode, explain_frames
 
         agent = Agent.from_checkpoint(out / "runs" / "yilratt" / "best.pt")
         explain_frames(agent, data, out / "explain", 8, seed, 0.5)

@@ -190,7 +190,7 @@ def run_demo(out: Path, budget: DemoBudget, seed: int = 0) -> Path:
     info = _done(out, "explain")
     if info is None:
         from yawil.agent import Agent
-        from yawil.explain import EpisodeVideo, explain_episode, explain_frames
+        from yawil.explain.attention import EpisodeVideo, explain_episode, explain_frames
 
         t = time.perf_counter()
         _say("5/6 attention heat maps on dataset frames and one town02 episode video")

@@ -15,9 +15,9 @@ import time
 
 import numpy as np
 
-from yawil.sim.town.geometry import ActorView, Box, LightPost, Marking, Style, TownGeometry
-from yawil.sim.town.render import CameraRenderer
-from yawil.sim.town.weather_fx import post_effects
+from yawil.sim.town.map.geometry import ActorView, Box, LightPost, Marking, Style, TownGeometry
+from yawil.sim.town.render.renderer import CameraRenderer
+from yawil.sim.town.render.weather_fx import post_effects
 from yawil.sim.types import Pose
 
 R, WALK = 3.5, 3.0  # road half width, sidewalk width
@@ -104,7 +104,7 @@ def load_town(name: str) -> TownGeometry:
     """The synthetic grid, or a map of the embedded simulator by name (town01, town02, square)."""
     if name == "grid":
         return grid_town()
-    from yawil.sim.town.town import get_town
+    from yawil.sim.town.map.town import get_town
 
     return get_town(name).geometry
 
@@ -124,7 +124,7 @@ def run(backend: str, frames: int, weather: str, town_name: str = "grid") -> dic
     if town_name == "grid":
         poses = [Pose(5.0 + (i * 0.6) % 390, YS[1] - 1.75, 0.0) for i in range(frames)]  # drive east along a road
     else:
-        from yawil.sim.town.town import get_town
+        from yawil.sim.town.map.town import get_town
 
         lanes = get_town(town_name).lanes  # drive along the lanes in turn
         poses = []

@@ -9,8 +9,8 @@ import pytest
 from PIL import Image
 
 from test_render import crossing_town
-from yawil.sim.town.birdseye import draw_birdseye
-from yawil.sim.town.geometry import ActorView
+from yawil.sim.town.map.geometry import ActorView
+from yawil.sim.town.render.birdseye import draw_birdseye
 from yawil.sim.types import Pose
 
 ROUTE = np.column_stack([np.linspace(-60, -2, 59), np.full(59, -1.75)])

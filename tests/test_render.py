@@ -8,11 +8,11 @@ import math
 import numpy as np
 import pytest
 
-from yawil.sim.town.camera import CameraConfig, camera_pose, reference_projection
-from yawil.sim.town.geometry import ActorView, Box, LightPost, Marking, Style, TownGeometry
-from yawil.sim.town.render import CameraRenderer
-from yawil.sim.town.scene_mesh import clip_to_cells
-from yawil.sim.town.weather_fx import haze_map, post_effects, rain_layers
+from yawil.sim.town.map.geometry import ActorView, Box, LightPost, Marking, Style, TownGeometry
+from yawil.sim.town.render.camera import CameraConfig, camera_pose, reference_projection
+from yawil.sim.town.render.renderer import CameraRenderer
+from yawil.sim.town.render.scene_mesh import clip_to_cells
+from yawil.sim.town.render.weather_fx import haze_map, post_effects, rain_layers
 from yawil.sim.types import Pose
 from yawil.sim.weather import TEST_WEATHERS, TRAIN_WEATHERS, get_weather
 

@@ -48,9 +48,9 @@ def test_view_writes_camera_frames_and_birdseye(tmp_path: Path, monkeypatch: pyt
         fig, _ = plt.subplots()
         return fig
 
-    fake = types.ModuleType("yawil.sim.town.birdseye")
+    fake = types.ModuleType("yawil.sim.town.render.birdseye")
     fake.draw_birdseye = draw_birdseye  # type: ignore[attr-defined]
-    monkeypatch.setitem(sys.modules, "yawil.sim.town.birdseye", fake)
+    monkeypatch.setitem(sys.modules, "yawil.sim.town.render.birdseye", fake)
     out = tmp_path / "view"
     assert main(["sim", "view", "--town", "square", "--steps", "4", "--frames", "2", "--vehicles", "3",
                  "--pedestrians", "3", "--out", str(out)]) == 0

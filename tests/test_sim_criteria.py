@@ -19,8 +19,8 @@ from yawil.sim.criteria import (
     TimeoutCriterion,
     boxes_overlap,
 )
-from yawil.sim.town.lights import GREEN, RED, TrafficLights
-from yawil.sim.town.town import get_town
+from yawil.sim.town.map.town import get_town
+from yawil.sim.town.traffic.lights import GREEN, RED, TrafficLights
 from yawil.sim.town.world import EmbeddedWorld
 
 

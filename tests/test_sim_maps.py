@@ -12,8 +12,8 @@ import networkx as nx
 import numpy as np
 import pytest
 
-from yawil.sim.town.layout import BUILTIN_TOWNS, load_layout, parse_layout
-from yawil.sim.town.planner import (
+from yawil.sim.town.map.layout import BUILTIN_TOWNS, load_layout, parse_layout
+from yawil.sim.town.map.planner import (
     GOAL_REACH,
     _graph,
     plan_route,
@@ -22,7 +22,7 @@ from yawil.sim.town.planner import (
     sample_route,
     square_tasks,
 )
-from yawil.sim.town.town import get_town
+from yawil.sim.town.map.town import get_town
 from yawil.sim.types import Pose, RoadOption
 
 RECT: dict[str, Any] = {"name": "rect", "nodes": {"a": [0, 0], "b": [100, 0], "c": [100, 60], "d": [0, 60]},

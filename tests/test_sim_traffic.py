@@ -9,12 +9,12 @@ import pytest
 
 from yawil.sim import Control, EventKind, Pose, RoadOption, Scenario
 from yawil.sim.criteria import boxes_overlap
-from yawil.sim.town.lanes import LaneGraph
-from yawil.sim.town.lights import GREEN, LINKED_GREEN, RED, TrafficLights
-from yawil.sim.town.pedestrians import SIZE, Pedestrians
-from yawil.sim.town.regions import GROUND
-from yawil.sim.town.town import get_town
-from yawil.sim.town.vehicles import Vehicles
+from yawil.sim.town.map.lanes import LaneGraph
+from yawil.sim.town.map.regions import GROUND
+from yawil.sim.town.map.town import get_town
+from yawil.sim.town.traffic.lights import GREEN, LINKED_GREEN, RED, TrafficLights
+from yawil.sim.town.traffic.pedestrians import SIZE, Pedestrians
+from yawil.sim.town.traffic.vehicles import Vehicles
 from yawil.sim.town.world import EmbeddedWorld
 
 

@@ -40,7 +40,7 @@ from gymnasium import spaces
 
 from yawil.expert import Expert
 from yawil.guidance import GUIDANCE_KINDS, GuidanceConfig, compute_guidance, project_on_route, resample_route
-from yawil.sim.town.layout import resolve_town
+from yawil.sim.town.map.layout import resolve_town
 from yawil.sim.town.world import EmbeddedWorld
 from yawil.sim.types import Control, EventKind, Observation, Scenario, command_index, validate_scenario
 
@@ -270,7 +270,7 @@ class _BirdsEye:
         from matplotlib.backends.backend_agg import FigureCanvasAgg
         from matplotlib.figure import Figure
 
-        from yawil.sim.town.birdseye import draw_birdseye
+        from yawil.sim.town.render.birdseye import draw_birdseye
 
         self.geometry = geometry
         xmin, ymin, xmax, ymax = geometry.bounds

@@ -1,6 +1,6 @@
 """The town map under the benchmark's plots and videos.
 
-Uses the simulator's bird's-eye drawing (`yawil.sim.town.birdseye.draw_birdseye`) when it is available, and
+Uses the simulator's bird's-eye drawing (`yawil.sim.town.render.birdseye.draw_birdseye`) when it is available, and
 otherwise a plain drawing of the road and sidewalk polygons, so reports never depend on it.
 """
 
@@ -16,11 +16,11 @@ def map_figure(town: str, route_xy: np.ndarray | None = None) -> Any:
     import matplotlib
 
     matplotlib.use("Agg")
-    from yawil.sim.town.town import get_town
+    from yawil.sim.town.map.town import get_town
 
     geometry = get_town(town).geometry
     try:
-        from yawil.sim.town.birdseye import draw_birdseye
+        from yawil.sim.town.render.birdseye import draw_birdseye
     except ImportError:
         return _plain_map(geometry, route_xy)
     return draw_birdseye(geometry, route_xy=route_xy)

@@ -8,7 +8,7 @@ end points has the task's structure. Rules (docs/benchmark.md):
 - one_turn: exactly one LEFT/RIGHT junction manoeuvre; before it the heading stays within 30 deg of the
   start's, after it within 30 deg of the goal's (no lane-follow corner);
 - navigation: any shortest route at least 1.0 km long in town01, 0.3 km in town02;
-- square: the 32 turning tasks of `yawil.sim.town.planner.turn_tasks` (8 corners, 16 T-junction, 8 crossing).
+- square: the 32 turning tasks of `yawil.sim.town.map.planner.turn_tasks` (8 corners, 16 T-junction, 8 crossing).
 """
 
 from __future__ import annotations
@@ -84,13 +84,13 @@ def classify(route: Route) -> tuple[str | None, tuple[str, ...]]:
 
 
 def _lanes(town: str) -> Any:
-    from yawil.sim.town.town import get_town
+    from yawil.sim.town.map.town import get_town
 
     return get_town(town).lanes
 
 
 def _replan(lanes: Any, start: Pose, goal: Pose) -> Route:
-    from yawil.sim.town.planner import plan_route
+    from yawil.sim.town.map.planner import plan_route
 
     return plan_route(lanes, start, goal).route  # type: ignore[no-any-return]
 
@@ -102,7 +102,7 @@ def _endpoints(route: Route) -> tuple[Pose, Pose]:
 
 def _walk(lanes: Any, rng: np.random.Generator, want: str) -> Route | None:
     """A candidate lane walk: straight connectors only (straight), or one LEFT/RIGHT among them (one_turn)."""
-    from yawil.sim.town.planner import sample_route
+    from yawil.sim.town.map.planner import sample_route
 
     ls = int(rng.integers(0, lanes.n_road_lanes))
     seq = [ls]
@@ -173,7 +173,7 @@ def generate_routes(town: str, seed: int = 0) -> dict[str, list[RouteSpec]]:
     """The route lists of a town: straight, one_turn, navigation (town01/town02) or square (square)."""
     lanes = _lanes(town)
     if town == "square":
-        from yawil.sim.town.planner import turn_tasks
+        from yawil.sim.town.map.planner import turn_tasks
 
         specs = []
         for i, task in enumerate(turn_tasks(lanes)):
@@ -186,7 +186,7 @@ def generate_routes(town: str, seed: int = 0) -> dict[str, list[RouteSpec]]:
         return {"square": specs}
     if town not in MIN_LENGTH:
         raise ValueError(f"no route rules for town {town!r}; choose one of town01, town02, square")
-    from yawil.sim.town.planner import random_route
+    from yawil.sim.town.map.planner import random_route
 
     rng = np.random.default_rng(seed)
     nav_min = MIN_LENGTH[town]["navigation"]

@@ -579,7 +579,7 @@ def collect(
     from yawil.locking import folder_lock
 
     if world_factory is embedded_world:  # a typo'd town must not leave a dataset behind that blocks the rerun
-        from yawil.sim.town.layout import resolve_town
+        from yawil.sim.town.map.layout import resolve_town
 
         resolve_town(town)
     with folder_lock(out, "dataset"):

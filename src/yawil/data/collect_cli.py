@@ -101,7 +101,7 @@ def run(args: argparse.Namespace) -> int:
     if args.backend != "embedded" and args.workers != 1:
         raise SystemExit(f"yawil collect: --backend {args.backend} drives one server: use --workers 1 (got {args.workers})")
     if args.backend == "embedded":  # before any folder is made: a typo'd town must not leave a dataset behind
-        from yawil.sim.town.layout import resolve_town
+        from yawil.sim.town.map.layout import resolve_town
 
         resolve_town(args.town)
     factory = world_factory(args.backend, **({} if args.backend == "embedded" else {"host": args.host, "port": args.port, "timeout": args.timeout}))

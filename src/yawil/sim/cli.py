@@ -76,13 +76,13 @@ def _view(args: argparse.Namespace) -> int:
     matplotlib.use("Agg")
     from PIL import Image
 
-    from yawil.sim.town.birdseye import draw_birdseye
+    from yawil.sim.town.render.birdseye import draw_birdseye
     from yawil.sim.town.world import EmbeddedWorld
     from yawil.sim.types import Scenario
 
     if args.steps < 0 or args.frames < 1:
         raise ValueError(f"--steps must be >= 0 and --frames >= 1, got {args.steps} and {args.frames}")
-    from yawil.sim.town.layout import resolve_town
+    from yawil.sim.town.map.layout import resolve_town
     from yawil.sim.weather import get_weather
 
     resolve_town(args.town)  # both named before a folder is made
@@ -123,8 +123,8 @@ def _view(args: argparse.Namespace) -> int:
 def _routes(args: argparse.Namespace) -> int:
     import numpy as np
 
-    from yawil.sim.town.planner import random_route, route_endpoints
-    from yawil.sim.town.town import get_town
+    from yawil.sim.town.map.planner import random_route, route_endpoints
+    from yawil.sim.town.map.town import get_town
 
     if args.count < 1:
         raise ValueError(f"--count {args.count}: expected an integer >= 1")
@@ -139,8 +139,8 @@ def _routes(args: argparse.Namespace) -> int:
 
 
 def _tasks(args: argparse.Namespace) -> int:
-    from yawil.sim.town.planner import turn_tasks
-    from yawil.sim.town.town import get_town
+    from yawil.sim.town.map.planner import turn_tasks
+    from yawil.sim.town.map.town import get_town
 
     tasks = turn_tasks(get_town(args.town).lanes)
     for t in tasks:

@@ -28,7 +28,7 @@ import networkx as nx
 import numpy as np
 
 from yawil.sim.carla.convert import xy_from_carla, yaw_from_carla
-from yawil.sim.town.planner import GOAL_REACH, PRE_JUNCTION, WAYPOINT_STEP, stations
+from yawil.sim.town.map.planner import GOAL_REACH, PRE_JUNCTION, WAYPOINT_STEP, stations
 from yawil.sim.types import Pose, RoadOption, Route, wrap_angle
 
 MAP_FORMAT = "yawil-carla-map/1"

@@ -16,13 +16,13 @@ import numpy as np
 from yawil.sim.criteria import BoxContacts
 from yawil.sim.judge import EpisodeJudge
 from yawil.sim.town.dynamics import EgoState, VehicleParams, step_bicycle
-from yawil.sim.town.geometry import ActorView
-from yawil.sim.town.lights import STATE_NAMES, TrafficLights
-from yawil.sim.town.pedestrians import HEIGHT, PED_COLORS, SIZE, Pedestrians
-from yawil.sim.town.planner import PlannedRoute, plan_route, random_route
-from yawil.sim.town.regions import JUNCTION_BASE
-from yawil.sim.town.town import Town, get_town, lane_heading_at
-from yawil.sim.town.vehicles import VEHICLE_COLORS, Vehicles
+from yawil.sim.town.map.geometry import ActorView
+from yawil.sim.town.map.planner import PlannedRoute, plan_route, random_route
+from yawil.sim.town.map.regions import JUNCTION_BASE
+from yawil.sim.town.map.town import Town, get_town, lane_heading_at
+from yawil.sim.town.traffic.lights import STATE_NAMES, TrafficLights
+from yawil.sim.town.traffic.pedestrians import HEIGHT, PED_COLORS, SIZE, Pedestrians
+from yawil.sim.town.traffic.vehicles import VEHICLE_COLORS, Vehicles
 from yawil.sim.types import (
     COMMAND_LOOKAHEAD,
     DT,
@@ -141,7 +141,7 @@ class EmbeddedWorld:
         if self._renderer is not None and self._renderer_town == self.town.name:
             return
         self.close()
-        from yawil.sim.town.render import CameraRenderer
+        from yawil.sim.town.render.renderer import CameraRenderer
 
         self._renderer = CameraRenderer(self.town.geometry, backend=self.render_backend)
         self._renderer_town = self.town.name

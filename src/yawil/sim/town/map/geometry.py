@@ -1,7 +1,7 @@
 """What a town looks like: the static geometry handed from the map builder to the renderers.
 
-The map builder (`yawil.sim.town.layout`) turns a layout file into a lane graph and one `TownGeometry`;
-the camera renderer (`yawil.sim.town.render`) and the bird's-eye view (`yawil.sim.town.birdseye`) draw
+The map builder (`yawil.sim.town.map.layout`) turns a layout file into a lane graph and one `TownGeometry`;
+the camera renderer (`yawil.sim.town.render.renderer`) and the bird's-eye view (`yawil.sim.town.render.birdseye`) draw
 only from this, plus the per-frame `ActorView`s and light states. Map frame: x east, y north, metres.
 """
 

@@ -16,9 +16,9 @@ from typing import Any
 
 import numpy as np
 
-from yawil.sim.town.camera import CameraConfig, camera_pose
-from yawil.sim.town.geometry import ActorView, TownGeometry
-from yawil.sim.town.scene_mesh import (
+from yawil.sim.town.map.geometry import ActorView, TownGeometry
+from yawil.sim.town.render.camera import CameraConfig, camera_pose
+from yawil.sim.town.render.scene_mesh import (
     PUDDLE_GROUPS,
     Mesh,
     Tiles,
@@ -27,7 +27,7 @@ from yawil.sim.town.scene_mesh import (
     build_static,
     lamp_colors,
 )
-from yawil.sim.town.weather_fx import haze_map, post_effects, rain_layers
+from yawil.sim.town.render.weather_fx import haze_map, post_effects, rain_layers
 from yawil.sim.types import Pose
 from yawil.sim.weather import Weather, get_weather
 

@@ -11,10 +11,10 @@ import math
 import numpy as np
 from PIL import Image, ImageDraw
 
-from yawil.sim.town.geometry import Box, TownGeometry
-from yawil.sim.town.lanes import LaneGraph
-from yawil.sim.town.layout import Layout, setback
-from yawil.sim.town.scenery import band, corner_curve, junction_hull, node_roads
+from yawil.sim.town.map.geometry import Box, TownGeometry
+from yawil.sim.town.map.lanes import LaneGraph
+from yawil.sim.town.map.layout import Layout, setback
+from yawil.sim.town.map.scenery import band, corner_curve, junction_hull, node_roads
 
 GROUND = -1
 SIDEWALK = -2

@@ -15,7 +15,7 @@ from typing import Any
 import numpy as np
 
 from yawil.fileio import atomic_file
-from yawil.sim.town.geometry import ActorView, Box, TownGeometry
+from yawil.sim.town.map.geometry import ActorView, Box, TownGeometry
 from yawil.sim.types import Pose
 
 _LIGHT_COLORS = {"red": "#e02020", "yellow": "#f0c020", "green": "#20c040", "off": "#808080"}

@@ -7,10 +7,10 @@ from collections.abc import Iterator
 
 import numpy as np
 
-from yawil.sim.town.geometry import Box
-from yawil.sim.town.lanes import LaneGraph
-from yawil.sim.town.layout import Layout, setback
-from yawil.sim.town.regions import RegionMap
+from yawil.sim.town.map.geometry import Box
+from yawil.sim.town.map.lanes import LaneGraph
+from yawil.sim.town.map.layout import Layout, setback
+from yawil.sim.town.map.regions import RegionMap
 
 POLE_COLOR = (0.25, 0.25, 0.27)
 TREE_COLOR = (0.2, 0.4, 0.18)

@@ -28,7 +28,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from yawil.sim.town.geometry import RGB, Style
+from yawil.sim.town.map.geometry import RGB, Style
 
 MAPS_DIR = Path(__file__).with_name("maps")
 BUILTIN_TOWNS: tuple[str, ...] = ("town01", "town02", "square")

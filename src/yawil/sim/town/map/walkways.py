@@ -10,8 +10,8 @@ import math
 
 import numpy as np
 
-from yawil.sim.town.layout import Layout, setback
-from yawil.sim.town.scenery import bisector_point, corner_curve, node_roads, offset
+from yawil.sim.town.map.layout import Layout, setback
+from yawil.sim.town.map.scenery import bisector_point, corner_curve, node_roads, offset
 
 
 class Walkways:

@@ -12,7 +12,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from yawil.sim.town.lanes import LaneGraph
+from yawil.sim.town.map.lanes import LaneGraph
 from yawil.sim.types import Pose, RoadOption, Route
 
 PRE_JUNCTION = 5.0  # metres before a junction connector that already carry its option
@@ -208,7 +208,7 @@ def turn_tasks(lanes: LaneGraph, lead_in: float = 25.0, lead_out: float = 25.0) 
 
 def square_tasks() -> list[TurnTask]:
     """The square scene's 32 turning tasks: 8 corner, 16 T-junction and 8 crossing turns."""
-    from yawil.sim.town.town import get_town
+    from yawil.sim.town.map.town import get_town
 
     tasks = turn_tasks(get_town("square").lanes)
     if len(tasks) != 32:  # pragma: no cover - guards edits of square.json

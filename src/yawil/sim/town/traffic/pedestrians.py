@@ -12,7 +12,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from yawil.sim.town.walkways import Walkways
+from yawil.sim.town.map.walkways import Walkways
 
 PED_COLORS = ((0.2, 0.2, 0.5), (0.6, 0.1, 0.1), (0.1, 0.4, 0.2), (0.3, 0.3, 0.3), (0.7, 0.6, 0.2), (0.5, 0.3, 0.5))
 SIZE = 0.6  # footprint, metres square

@@ -13,7 +13,7 @@ from typing import Any
 
 import numpy as np
 
-from yawil.sim.town.geometry import Box, LightPost, Marking, TownGeometry
+from yawil.sim.town.map.geometry import Box, LightPost, Marking, TownGeometry
 
 _GROUND_Z, _ROAD_Z, _PUDDLE_Z, _MARK_Z, _SIDEWALK_H = -0.03, 0.0, 0.01, 0.02, 0.15
 _CELL = 10.0  # tinydisplay mis-handles large triangles: flat surfaces are cut into cells of this size

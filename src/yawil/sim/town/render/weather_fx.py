@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from yawil.sim.town.camera import CameraConfig
+from yawil.sim.town.render.camera import CameraConfig
 from yawil.sim.weather import Weather
 
 

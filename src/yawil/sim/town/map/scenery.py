@@ -10,9 +10,9 @@ import math
 
 import numpy as np
 
-from yawil.sim.town.geometry import Box, LightPost, Marking, TownGeometry
-from yawil.sim.town.lanes import LaneGraph, bezier_handle
-from yawil.sim.town.layout import Layout, setback
+from yawil.sim.town.map.geometry import Box, LightPost, Marking, TownGeometry
+from yawil.sim.town.map.lanes import LaneGraph, bezier_handle
+from yawil.sim.town.map.layout import Layout, setback
 
 WHITE = (0.92, 0.92, 0.9)
 YELLOW = (0.9, 0.75, 0.2)

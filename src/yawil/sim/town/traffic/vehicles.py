@@ -15,8 +15,8 @@ import math
 import numpy as np
 
 from yawil.sim.criteria import boxes_overlap
-from yawil.sim.town.lanes import LaneGraph
-from yawil.sim.town.lights import GREEN, YELLOW
+from yawil.sim.town.map.lanes import LaneGraph
+from yawil.sim.town.traffic.lights import GREEN, YELLOW
 from yawil.sim.types import RoadOption
 
 VEHICLE_COLORS = ((0.75, 0.1, 0.1), (0.1, 0.2, 0.6), (0.85, 0.85, 0.85), (0.1, 0.1, 0.1), (0.5, 0.5, 0.55),

@@ -13,7 +13,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from yawil.sim.town.layout import Layout, setback
+from yawil.sim.town.map.layout import Layout, setback
 from yawil.sim.types import RoadOption, wrap_angle
 
 SAMPLE_STEP = 0.5  # metres between the precomputed lane samples used for vectorised lookups

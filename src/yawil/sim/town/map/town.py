@@ -12,13 +12,13 @@ from pathlib import Path
 
 import numpy as np
 
-from yawil.sim.town.buildings import place_buildings, place_props
-from yawil.sim.town.geometry import Box, TownGeometry
-from yawil.sim.town.lanes import LaneGraph
-from yawil.sim.town.layout import Layout, load_layout, resolve_town
-from yawil.sim.town.regions import RegionMap
-from yawil.sim.town.scenery import build_geometry, light_post_boxes
-from yawil.sim.town.walkways import Walkways
+from yawil.sim.town.map.buildings import place_buildings, place_props
+from yawil.sim.town.map.geometry import Box, TownGeometry
+from yawil.sim.town.map.lanes import LaneGraph
+from yawil.sim.town.map.layout import Layout, load_layout, resolve_town
+from yawil.sim.town.map.regions import RegionMap
+from yawil.sim.town.map.scenery import build_geometry, light_post_boxes
+from yawil.sim.town.map.walkways import Walkways
 
 
 @dataclass

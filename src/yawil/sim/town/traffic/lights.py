@@ -17,7 +17,7 @@ import math
 
 import numpy as np
 
-from yawil.sim.town.lanes import LaneGraph
+from yawil.sim.town.map.lanes import LaneGraph
 
 GREEN, YELLOW, RED = 0, 1, 2
 LINK_BLOCK = 30.0  # m: junctions joined by a shorter block share their phase along it

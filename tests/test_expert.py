@@ -415,9 +415,9 @@ def test_a_vehicle_standing_just_past_the_goal_is_not_run_into() -> None:
 def test_points_past_the_goal_lie_on_the_route_s_extension() -> None:
     """The tail added past the goal must not shift what lies beyond the route's end (pure pursuit aims there
     near the goal): 3 m past the end is 3 m past the goal point, not 3 m past the tail."""
-    from yawil.expert import _RouteCache
+    from yawil.expert.route import RouteCache
 
-    rc = _RouteCache(make_route(straight(0.0, 50.0)))
+    rc = RouteCache(make_route(straight(0.0, 50.0)))
     assert rc.length == pytest.approx(50.0)
     for ahead in (0.0, 3.0, 11.0, 20.0):
         assert rc.point_at(50.0 + ahead) == pytest.approx(np.array([50.0 + ahead, 0.0]))

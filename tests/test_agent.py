@@ -10,11 +10,9 @@ import numpy as np
 import pytest
 import torch
 
-from yawil import models
 from yawil.agent import Agent, PostProcess
 from yawil.guidance import GuidanceConfig, compute_guidance
 from yawil.learn.sampling import prepare_batch
-from yawil.policy.checkpoint import Norm, make_checkpoint, save_checkpoint
 from yawil.policy.runtime import resolve_runtime
 from yawil.sim.types import Control, Observation, Pose, RoadOption, Route
 
@@ -38,17 +36,8 @@ def observation(command: RoadOption = RoadOption.LANEFOLLOW, speed: float = 3.0,
     )  # fmt: skip
 
 
-def checkpoint(tmp_path: Path, name: str, **cfg: Any) -> tuple[Path, Norm]:
-    model = models.create(name, seed=0, **cfg)
-    dim = model.guidance_dim if model.guidance else 0
-    norm = Norm(2.5, 1.5, tuple(np.linspace(-0.1, 0.1, dim)), tuple(np.linspace(0.5, 1.5, dim)))
-    path = tmp_path / f"{name}.pt"
-    save_checkpoint(make_checkpoint(model, norm, GC, {"model": name}), path)
-    return path, norm
-
-
-def test_guided_agent_uses_training_preprocessing(tmp_path: Path) -> None:
-    path, norm = checkpoint(tmp_path, "yaw-guided", guidance_dim=K, dropout=0.0)
+def test_guided_agent_uses_training_preprocessing(tiny_checkpoint: Any) -> None:
+    path, norm = tiny_checkpoint("yaw-guided", guidance=GC, spread=True, guidance_dim=K, dropout=0.0)
     agent = Agent.from_checkpoint(path, precision="fp32")
     agent.reset()
     obs = observation()
@@ -82,8 +71,8 @@ def test_guided_agent_uses_training_preprocessing(tmp_path: Path) -> None:
     assert agent._hint is not None  # the projection hint is kept for the next frame
 
 
-def test_branched_agent_follows_the_command(tmp_path: Path) -> None:
-    path, _ = checkpoint(tmp_path, "cil", dropout=0.0)
+def test_branched_agent_follows_the_command(tiny_checkpoint: Any) -> None:
+    path, _ = tiny_checkpoint("cil", guidance=GC, spread=True, dropout=0.0)
     agent = Agent.from_checkpoint(path, precision="fp32")
     for option, index in ((RoadOption.LEFT, 1), (RoadOption.STRAIGHT, 3), (RoadOption.VOID, 0)):
         agent.act(observation(option))
@@ -92,8 +81,8 @@ def test_branched_agent_follows_the_command(tmp_path: Path) -> None:
         np.testing.assert_allclose(agent.last.actions, agent.last.branches[index], atol=0)
 
 
-def test_yilratt_agent_exposes_attention(tmp_path: Path) -> None:
-    path, _ = checkpoint(tmp_path, "yilratt", guidance_dim=K)
+def test_yilratt_agent_exposes_attention(tiny_checkpoint: Any) -> None:
+    path, _ = tiny_checkpoint("yilratt", guidance=GC, spread=True, guidance_dim=K)
     agent = Agent.from_checkpoint(path)  # default precision: bf16 where the CPU has it
     agent.act(observation())
     assert agent.last is not None and len(agent.last.attention) >= 1
@@ -112,8 +101,8 @@ def test_post_processing() -> None:
         PostProcess(brake_threshold=2.0)
 
 
-def test_noise_options_are_seeded(tmp_path: Path) -> None:
-    path, _ = checkpoint(tmp_path, "yaw-guided", guidance_dim=K)
+def test_noise_options_are_seeded(tiny_checkpoint: Any) -> None:
+    path, _ = tiny_checkpoint("yaw-guided", guidance=GC, spread=True, guidance_dim=K)
     clean = Agent.from_checkpoint(path, precision="fp32")
     noisy = Agent.from_checkpoint(path, precision="fp32", yaw_noise_deg=20.0, seed=3)
     obs = observation()
@@ -124,7 +113,7 @@ def test_noise_options_are_seeded(tmp_path: Path) -> None:
     assert g0 is not None and g1 is not None and g2 is not None
     assert not np.allclose(g0, g1) and np.array_equal(g1, g2)
 
-    cpath, _ = checkpoint(tmp_path, "cil")
+    cpath, _ = tiny_checkpoint("cil", guidance=GC, spread=True)
     always = Agent.from_checkpoint(cpath, precision="fp32", command_noise_p=1.0, seed=1)
     given = [always.inputs(observation(RoadOption.LEFT))[2] for _ in range(5)]
     assert all(c is not None and c != 1 for c in given)
@@ -135,8 +124,8 @@ def test_noise_options_are_seeded(tmp_path: Path) -> None:
         Agent.from_checkpoint(path, command_noise_p=0.1)
 
 
-def test_bad_observation_and_checkpoint(tmp_path: Path) -> None:
-    path, _ = checkpoint(tmp_path, "cil")
+def test_bad_observation_and_checkpoint(tmp_path: Path, tiny_checkpoint: Any) -> None:
+    path, _ = tiny_checkpoint("cil", guidance=GC, spread=True)
     agent = Agent.from_checkpoint(path)
     obs = observation()
     assert obs.image is not None
@@ -148,9 +137,9 @@ def test_bad_observation_and_checkpoint(tmp_path: Path) -> None:
         Agent.from_checkpoint(tmp_path / "none.pt")
 
 
-def test_speed_control_drives_the_predicted_target_speed(tmp_path: Path) -> None:
+def test_speed_control_drives_the_predicted_target_speed(tiny_checkpoint: Any) -> None:
     """With an aux head and speed_control, throttle and brake follow the head's target speed, not the net's."""
-    path, norm = checkpoint(tmp_path, "yilratt", guidance_dim=K, dropout=0.0, aux=True)
+    path, norm = tiny_checkpoint("yilratt", guidance=GC, spread=True, guidance_dim=K, dropout=0.0, aux=True)
     plain = Agent.from_checkpoint(path, precision="fp32")
     ctl = Agent.from_checkpoint(path, precision="fp32", speed_control=True)
     obs = observation(speed=3.0)
@@ -163,4 +152,4 @@ def test_speed_control_drives_the_predicted_target_speed(tmp_path: Path) -> None
     t_want, b_want = type(ctl.speed_control)()(target, 3.0)  # type: ignore[misc]
     assert c1.throttle == pytest.approx(t_want) and c1.brake == pytest.approx(b_want if b_want >= 0.1 else 0.0)
     with pytest.raises(ValueError, match="aux head"):
-        Agent.from_checkpoint(checkpoint(tmp_path, "yaw-guided", guidance_dim=K)[0], speed_control=True)
+        Agent.from_checkpoint(tiny_checkpoint("yaw-guided", guidance=GC, spread=True, guidance_dim=K)[0], speed_control=True)

@@ -16,7 +16,7 @@ import os
 import sys
 from typing import Any
 
-# option -> (TrainConfig field, type, help). Every TrainConfig field has one (tests/test_train.py checks).
+# option -> (TrainConfig field, type, help). Every TrainConfig field has one (tests/learn/test_train.py checks).
 _OPTIONS: tuple[tuple[str, str, Any, str], ...] = (
     ("--epochs", "epochs", int, "epochs (paper: 100)"),
     ("--batch-size", "batch_size", int, "mini-batch size (paper: 512)"),

@@ -4,44 +4,39 @@ from __future__ import annotations
 
 import dataclasses
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
 
-from yawil import models, video
+from yawil import video
 from yawil.cli import main
-from yawil.data.synthetic import write_synthetic_dataset
 from yawil.explain import attention, figures
 from yawil.guidance import GuidanceConfig
-from yawil.policy.checkpoint import Norm, make_checkpoint, save_checkpoint
 
 
-def _checkpoint(tmp_path: Path, name: str, k: int) -> Path:
-    gc = GuidanceConfig(count=k)
-    model = models.create(name, seed=0, guidance_dim=k) if name == "yilratt" else models.create(name, seed=0)
-    dim = model.guidance_dim if model.guidance else 0
-    norm = Norm(2.5, 1.5, tuple(np.zeros(dim)), tuple(np.ones(dim)))
-    path = tmp_path / f"{name}.pt"
-    save_checkpoint(make_checkpoint(model, norm, gc.to_dict(), {"model": name}), path)
-    return path
+def _checkpoint(tiny_checkpoint: Any, name: str, k: int) -> Path:
+    """An untrained `name` whose guidance has k values (yilratt's input follows k)."""
+    cfg = {"guidance_dim": k} if name == "yilratt" else {}
+    return tiny_checkpoint(name, guidance=GuidanceConfig(count=k).to_dict(), **cfg).path
 
 
 @pytest.mark.parametrize("name", ["yilratt", "cilrs"])
-def test_explain_frames_writes_figures(tmp_path: Path, name: str) -> None:
-    write_synthetic_dataset(tmp_path / "data", episodes=2, frames=5, k=15)
-    ckpt = _checkpoint(tmp_path, name, 15)
-    assert main(["explain", "--checkpoint", str(ckpt), "--frames", str(tmp_path / "data"), "--count", "2", "--out", str(tmp_path / "x")]) == 0
+def test_explain_frames_writes_figures(tmp_path: Path, name: str, tiny_checkpoint: Any, tiny_dataset: Any) -> None:
+    data = tiny_dataset(episodes=2, frames=5, k=15)
+    ckpt = _checkpoint(tiny_checkpoint, name, 15)
+    assert main(["explain", "--checkpoint", str(ckpt), "--frames", str(data), "--count", "2", "--out", str(tmp_path / "x")]) == 0
     assert (tmp_path / "x" / "frame_00.png").stat().st_size > 0
     assert (tmp_path / "x" / "grid.png").stat().st_size > 0
 
 
-def test_record_maps_are_probability_maps(tmp_path: Path) -> None:
+def test_record_maps_are_probability_maps(tiny_checkpoint: Any, tiny_dataset: Any) -> None:
     from yawil.agent import Agent
     from yawil.data.reader import open_episode
 
-    write_synthetic_dataset(tmp_path / "data", episodes=1, frames=3, k=15)
-    agent = Agent.from_checkpoint(_checkpoint(tmp_path, "yilratt", 15))
-    with open_episode(next((tmp_path / "data").rglob("*.h5"))) as ep:
+    data = tiny_dataset(episodes=1, frames=3, k=15)
+    agent = Agent.from_checkpoint(_checkpoint(tiny_checkpoint, "yilratt", 15))
+    with open_episode(next(data.rglob("*.h5"))) as ep:
         item = attention.explain_record(agent, ep[0])
     assert len(item.maps) == 3
     for m in item.maps:
@@ -49,8 +44,8 @@ def test_record_maps_are_probability_maps(tmp_path: Path) -> None:
     assert figures.overlay(item.image, item.maps[0]).shape == item.image.shape
 
 
-def test_explain_episode_video_has_the_frames(tmp_path: Path) -> None:
-    ckpt = _checkpoint(tmp_path, "yilratt", 15)
+def test_explain_episode_video_has_the_frames(tmp_path: Path, tiny_checkpoint: Any) -> None:
+    ckpt = _checkpoint(tiny_checkpoint, "yilratt", 15)
     args = ["explain", "--checkpoint", str(ckpt), "--episode", "--town", "town02", "--weather", "ClearNoon",
             "--vehicles", "0", "--pedestrians", "0", "--steps", "6", "--every", "2", "--out", str(tmp_path / "v")]  # fmt: skip
     assert main(args) == 0

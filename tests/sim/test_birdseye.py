@@ -7,8 +7,8 @@ from pathlib import Path
 import numpy as np
 import pytest
 from PIL import Image
-
 from test_render import crossing_town
+
 from yawil.sim.town.map.geometry import ActorView
 from yawil.sim.town.render.birdseye import draw_birdseye
 from yawil.sim.types import Pose

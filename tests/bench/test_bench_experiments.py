@@ -4,8 +4,8 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
-import numpy as np
 import pytest
 
 from yawil.bench.experiments import get_profile, noise_candidates, noise_experiment, table1_markdown
@@ -40,24 +40,11 @@ def test_noise_candidates(tmp_path: Path) -> None:
         noise_experiment(tmp_path, "standard", seeds=0)
 
 
-def _checkpoint(tmp_path: Path, name: str) -> Path:
-    from yawil import models
-    from yawil.guidance import GuidanceConfig
-    from yawil.policy.checkpoint import Norm, make_checkpoint, save_checkpoint
-
-    model = models.create(name, seed=0)
-    dim = model.guidance_dim if model.guidance else 0
-    norm = Norm(3.0, 2.0, tuple(np.zeros(dim)), tuple(np.ones(dim)))
-    path = tmp_path / f"{name}.pt"
-    save_checkpoint(make_checkpoint(model, norm, GuidanceConfig().to_dict(), {"model": name}), path)
-    return path
-
-
-def test_learned_agent_episode_with_command_noise(tmp_path: Path) -> None:
+def test_learned_agent_episode_with_command_noise(tmp_path: Path, tiny_checkpoint: Any) -> None:
     import torch
 
     torch.set_num_threads(1)
-    ckpt = _checkpoint(tmp_path, "cil")  # untrained: it will not reach the goal, the loop is what is tested
+    ckpt = tiny_checkpoint("cil", speed=(3.0, 2.0)).path  # untrained: it will not reach the goal, the loop is what is tested
     ep = episodes("square", routes="2", seeds=1)
     spec = AgentSpec(str(ckpt), command_noise_p=0.1)
     rec = run_benchmark(ep, spec, tmp_path / "a", progress=False).records[0]
@@ -69,8 +56,8 @@ def test_learned_agent_episode_with_command_noise(tmp_path: Path) -> None:
 
 
 @pytest.mark.slow
-def test_learned_agent_is_deterministic_across_runs_and_workers(tmp_path: Path) -> None:
-    ckpt = _checkpoint(tmp_path, "yaw-guided")
+def test_learned_agent_is_deterministic_across_runs_and_workers(tmp_path: Path, tiny_checkpoint: Any) -> None:
+    ckpt = tiny_checkpoint("yaw-guided", speed=(3.0, 2.0)).path
     eps = episodes("square", routes="2,9", seeds=1)
     spec = AgentSpec(str(ckpt), yaw_noise_deg=20.0)
     one = run_benchmark(eps, spec, tmp_path / "a", progress=False).records

@@ -25,7 +25,7 @@ from yawil.bench.suites import parse_route
 from yawil.sim.carla.topology import CarlaTopology
 from yawil.sim.types import Pose
 
-FIX = Path(__file__).parent / "fixtures" / "carla"
+FIX = Path(__file__).parents[1] / "fixtures" / "carla"
 
 
 @pytest.fixture(scope="module")

@@ -6,11 +6,12 @@ from __future__ import annotations
 import json
 from pathlib import Path
 from types import SimpleNamespace
+from typing import Any
 
 import numpy as np
 import pytest
 
-from test_collect import LineWorld, small_cfg
+from scripted_world import LineWorld, small_cfg
 from yawil.bench.select import BenchmarkRoutes, validation_episodes
 from yawil.data.collect import CollectConfig, Learner, OnPolicy, collect, plan_episode, run_episode
 from yawil.data.manifest import read_manifest
@@ -20,6 +21,7 @@ from yawil.data.writer import DatasetWriter
 from yawil.pipelines.dagger import BENCH_WORLD_SEED_LIMIT, DaggerConfig, DaggerRun
 from yawil.sim.types import Control, Observation
 
+AGENT_GC = {"spacing": 2.0, "count": 4, "reference": "route"}  # the guidance of tests/test_agent.py
 LEARNER, TAKEOVER, EXPERT = DRIVERS.index("learner"), DRIVERS.index("takeover"), DRIVERS.index("expert")
 
 
@@ -151,12 +153,11 @@ def test_dagger_config_is_checked() -> None:
         DaggerConfig(expert_args={"softly": 1.0})
 
 
-def test_the_dagger_learner_drives_as_benched(tmp_path: Path) -> None:
+def test_the_dagger_learner_drives_as_benched(tiny_checkpoint: Any) -> None:
     """With speed_control the learner's throttle and brake come from its aux head's target speed."""
-    from test_agent import checkpoint
     from yawil.pipelines.dagger import load_learner
 
-    path, _ = checkpoint(tmp_path, "yilratt", aux=True)
+    path, _ = tiny_checkpoint("yilratt", guidance=AGENT_GC, spread=True, aux=True)
     assert load_learner(str(path), 1, True).speed_control is not None
     assert load_learner(str(path), 1).speed_control is None
 
@@ -189,17 +190,17 @@ def test_a_tiny_dagger_run_end_to_end_and_resumed(tmp_path: Path) -> None:
     DaggerRun(out, cfg, log=lambda m: None, progress=False).run()
 
 
-def test_select_picks_the_checkpoint_that_drives_best(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+def test_select_picks_the_checkpoint_that_drives_best(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
+                                                      tiny_checkpoint: Any) -> None:
     """The ranking of `yawil select` (the driving itself is the benchmark runner's, tested there)."""
     import yawil.bench.runner as runner
-    from test_agent import checkpoint
     from yawil.bench.records import EpisodeLog
     from yawil.bench.select import select_checkpoint
 
     paths = []
     for name in ("a", "b", "c"):
         (tmp_path / name).mkdir()
-        p, _ = checkpoint(tmp_path / name, "yaw-guided")
+        p, _ = tiny_checkpoint("yaw-guided", folder=tmp_path / name, guidance=AGENT_GC, spread=True)
         paths.append(p)
     wins = {"a": 1, "b": 2, "c": 2}
     crashes = {"a": 0, "b": 1, "c": 0}

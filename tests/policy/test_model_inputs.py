@@ -13,11 +13,10 @@ import pytest
 import torch
 from torch.utils.data import default_collate
 
-from test_agent import K, checkpoint, observation
+from test_agent import GC, K, observation
 from yawil.agent import Agent
 from yawil.data.dataset import DrivingDataset
 from yawil.data.reader import open_episode
-from yawil.data.synthetic import write_synthetic_dataset
 from yawil.explain import attention
 from yawil.policy.checkpoint import Norm
 from yawil.policy.inputs import InputSpec, guidance_key, input_names
@@ -43,9 +42,9 @@ def _batch_of(x_image: np.ndarray, speed: float, option: int, guidance: dict[str
 @pytest.mark.parametrize("channels_last", ["auto", "off"])
 @pytest.mark.parametrize(("name", "cfg"), CASES)
 def test_a_batch_and_an_observation_of_one_frame_give_the_same_inputs(
-    tmp_path: Path, name: str, cfg: dict[str, Any], channels_last: str
+    tiny_checkpoint: Any, name: str, cfg: dict[str, Any], channels_last: str
 ) -> None:
-    path, norm = checkpoint(tmp_path, name, dropout=0.0, **cfg)
+    path, norm = tiny_checkpoint(name, guidance=GC, spread=True, dropout=0.0, **cfg)
     agent = Agent.from_checkpoint(path, precision="fp32", channels_last=channels_last)
     obs = observation(RoadOption.LEFT, speed=4.25, seed=3)
     x, g_raw, cmd = agent.model_inputs(obs)
@@ -76,9 +75,8 @@ def test_a_batch_and_an_observation_of_one_frame_give_the_same_inputs(
     assert all((v is None) == (x.as_dict()[k] is None) for k, v in d.items())
 
 
-def test_a_stored_frame_and_its_dataset_sample_give_the_same_inputs(tmp_path: Path) -> None:
-    write_synthetic_dataset(tmp_path / "data", episodes=1, frames=4, k=K)
-    ds = DrivingDataset(tmp_path / "data")
+def test_a_stored_frame_and_its_dataset_sample_give_the_same_inputs(tiny_dataset: Any) -> None:
+    ds = DrivingDataset(tiny_dataset(episodes=1, frames=4, k=K))
     raw = default_collate([ds[0], ds[1], ds[2]])
     norm = Norm(2.0, 3.0, tuple(np.linspace(-0.2, 0.2, K)), tuple(np.linspace(0.5, 2.0, K)))
     runtime = resolve_runtime("cpu", "fp32", "auto")
@@ -94,13 +92,13 @@ def test_a_stored_frame_and_its_dataset_sample_give_the_same_inputs(tmp_path: Pa
         guidance_key("heading")
 
 
-def test_a_fixed_checkpoint_acts_the_same_through_agent_explain_and_onnx(tmp_path: Path) -> None:
+def test_a_fixed_checkpoint_acts_the_same_through_agent_explain_and_onnx(tmp_path: Path, tiny_checkpoint: Any) -> None:
     pytest.importorskip("onnxruntime")
     import onnxruntime as ort
 
     from yawil.learn.export import export_onnx
 
-    path, _ = checkpoint(tmp_path, "yaw-guided", guidance_dim=K, dropout=0.0)
+    path, _ = tiny_checkpoint("yaw-guided", guidance=GC, spread=True, guidance_dim=K, dropout=0.0)
     agent = Agent.from_checkpoint(path, precision="fp32")
     session = ort.InferenceSession(str(export_onnx(path, tmp_path / "m.onnx")), providers=["CPUExecutionProvider"])
     agent.reset()

@@ -37,7 +37,7 @@ from yawil.sim.criteria import CollisionCriterion, LaneInvasionCriterion, RedLig
 from yawil.sim.types import Control, EventKind, Pose, RoadOption
 from yawil.sim.weather import WEATHERS
 
-FIX = Path(__file__).parent / "fixtures" / "carla"
+FIX = Path(__file__).parents[1] / "fixtures" / "carla"
 L, R, S, F = RoadOption.LEFT, RoadOption.RIGHT, RoadOption.STRAIGHT, RoadOption.LANEFOLLOW
 
 

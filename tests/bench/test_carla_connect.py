@@ -1,6 +1,6 @@
 """`yawil bench --backend carla` finds, makes and checks the town's route file on connect (FakeCarlaServer).
 
-The stand-in server (tests/test_carla_world.py) carries a REAL carla.Map built from
+The stand-in server (tests/sim/test_carla_world.py) carries a REAL carla.Map built from
 tests/fixtures/carla/grid.xodr under the name Town02 or Town01, so the topology the files are made from and
 checked against is CARLA's own; town02's rules (60 m / 300 m) fit the grid, town01's 1 km navigation does not.
 The `carla.Client` constructor is replaced by one that returns the stand-in: the command runs unchanged.
@@ -23,7 +23,7 @@ from yawil.bench.suites import load_routes
 from yawil.cli import main
 from yawil.sim.carla.topology import CarlaTopology
 
-FIX = Path(__file__).parent / "fixtures" / "carla"
+FIX = Path(__file__).parents[1] / "fixtures" / "carla"
 RUN = ["bench", "--backend", "carla", "--suite", "corl2017", "--tasks", "straight", "--seeds", "1", "--no-progress",
        "--weather-rule", "cycle"]
 

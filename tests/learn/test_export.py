@@ -12,25 +12,19 @@ import onnxruntime as ort
 import pytest
 import torch
 
-from yawil import models
 from yawil.cli import main
 from yawil.learn.export import check_onnx, export_onnx
-from yawil.policy.checkpoint import Norm, make_checkpoint, save_checkpoint
 
 torch.set_num_threads(2)
+GC = {"spacing": 2.0, "count": 4, "reference": "route"}
 
 
-def _checkpoint(tmp_path: Path, name: str, **cfg: Any) -> Path:
-    model = models.create(name, seed=0, **cfg)
-    dim = model.guidance_dim if model.guidance else 0
-    norm = Norm(2.0, 1.0, (0.0,) * dim, (1.0,) * dim)
-    path = tmp_path / f"{name}.pt"
-    save_checkpoint(make_checkpoint(model, norm, {"spacing": 2.0, "count": 4, "reference": "route"}), path)
-    return path
+def _checkpoint(tiny_checkpoint: Any, name: str, **cfg: Any) -> Path:
+    return tiny_checkpoint(name, guidance=GC, speed=(2.0, 1.0), train_config={}, **cfg).path
 
 
-def test_cil_export_agrees_with_torch(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    ckpt = _checkpoint(tmp_path, "cil")
+def test_cil_export_agrees_with_torch(tmp_path: Path, tiny_checkpoint: Any, capsys: pytest.CaptureFixture[str]) -> None:
+    ckpt = _checkpoint(tiny_checkpoint, "cil")
     out = tmp_path / "cil.onnx"
     assert main(["export", str(ckpt), "--onnx", str(out), "--check"]) == 0
     printed = capsys.readouterr().out
@@ -53,25 +47,25 @@ def test_cil_export_agrees_with_torch(tmp_path: Path, capsys: pytest.CaptureFixt
     assert not np.allclose(a0, a1)
 
 
-def test_guided_export_has_guidance_input(tmp_path: Path) -> None:
-    ckpt = _checkpoint(tmp_path, "yaw-guided", guidance_dim=4)
+def test_guided_export_has_guidance_input(tmp_path: Path, tiny_checkpoint: Any) -> None:
+    ckpt = _checkpoint(tiny_checkpoint, "yaw-guided", guidance_dim=4)
     out = export_onnx(ckpt, tmp_path / "g.onnx")
     assert [i.name for i in onnx.load(str(out)).graph.input] == ["image", "speed", "guidance"]
     assert all(a.max_abs_diff <= 1e-4 for a in check_onnx(ckpt, out))
 
 
-def test_export_errors(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+def test_export_errors(tmp_path: Path, tiny_checkpoint: Any, capsys: pytest.CaptureFixture[str]) -> None:
     assert main(["export", str(tmp_path / "none.pt"), "--onnx", str(tmp_path / "x.onnx")]) == 2
     assert "none.pt" in capsys.readouterr().err
     with pytest.raises(ValueError, match="opset"):
-        export_onnx(_checkpoint(tmp_path, "cil"), tmp_path / "x.onnx", opset=13)
+        export_onnx(_checkpoint(tiny_checkpoint, "cil"), tmp_path / "x.onnx", opset=13)
     assert not (tmp_path / "x.onnx").exists()
-    assert main(["export", str(_checkpoint(tmp_path, "cil")), "--onnx", str(tmp_path)]) == 2
+    assert main(["export", str(_checkpoint(tiny_checkpoint, "cil")), "--onnx", str(tmp_path)]) == 2
     assert "is a folder" in capsys.readouterr().err
 
 
-def test_a_failed_check_writes_no_model(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
-    ckpt = _checkpoint(tmp_path, "cil")
+def test_a_failed_check_writes_no_model(tmp_path: Path, tiny_checkpoint: Any, capsys: pytest.CaptureFixture[str]) -> None:
+    ckpt = _checkpoint(tiny_checkpoint, "cil")
     out = tmp_path / "cil.onnx"
     assert main(["export", str(ckpt), "--onnx", str(out), "--check", "--tolerance", "-1"]) == 1  # cannot pass
     printed = capsys.readouterr().out
@@ -80,8 +74,8 @@ def test_a_failed_check_writes_no_model(tmp_path: Path, capsys: pytest.CaptureFi
 
 
 @pytest.mark.slow
-def test_yilratt_export_with_attention_outputs(tmp_path: Path) -> None:
-    ckpt = _checkpoint(tmp_path, "yilratt", guidance_dim=4)
+def test_yilratt_export_with_attention_outputs(tmp_path: Path, tiny_checkpoint: Any) -> None:
+    ckpt = _checkpoint(tiny_checkpoint, "yilratt", guidance_dim=4)
     out = export_onnx(ckpt, tmp_path / "y.onnx")
     names = [o.name for o in onnx.load(str(out)).graph.output]
     assert names[:2] == ["actions", "pred_speed"] and len(names) > 2 and names[2] == "attention_0"

@@ -86,7 +86,7 @@ def test_split_by_episode_is_deterministic(root: Path) -> None:
     assert split_episodes(root, 0.0, 0) == ([0, 1, 2, 3, 4], [])
     with pytest.raises(ValueError, match="val_fraction"):
         split_episodes(root, 1.0)
-    # The module contract train.open_splits relies on.
+    # The module contract yawil.learn.setup.open_splits relies on.
     assert yawil.data.split_episodes is split_episodes and yawil.data.DrivingDataset is DrivingDataset
 
 

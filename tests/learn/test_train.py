@@ -482,7 +482,7 @@ def test_a_one_episode_dataset_trains_without_validation(tmp_path: Path, capsys:
 def test_pretrained_backbone_is_loaded(tmp_path: Path) -> None:
     import torchvision
 
-    from yawil.learn.loop import build_model
+    from yawil.learn.setup import build_model
 
     net = torchvision.models.resnet34()
     torch.nn.init.constant_(net.conv1.weight, 0.125)

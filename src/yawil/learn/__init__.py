@@ -7,6 +7,7 @@
 - `validate`: the held-out split's loss and errors (the columns of metrics.csv)
 - `state`: where a run is and the random states, for an exact resume
 - `stop`: Ctrl-C / SIGTERM ends a run after the current step
+- `setup`: what a run starts from: the splits and their loaders, the network, the resume check
 - `loop`: `train(cfg)`, the loop that ties these together and writes the run folder
 - `artifacts`: metrics.csv, loss.png, best.pt as a link
 - `distributed`: the same loop under torchrun (DDP)

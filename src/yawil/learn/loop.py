@@ -31,7 +31,7 @@ from yawil.fileio import write_atomic
 from yawil.learn import distributed
 from yawil.learn.artifacts import link_or_copy, plot_losses, write_metrics
 from yawil.learn.augment import augment_batch
-from yawil.learn.config import RESUMABLE_CHANGES, TrainConfig, auto_threads
+from yawil.learn.config import TrainConfig, auto_threads
 from yawil.learn.distributed import Dist
 from yawil.learn.loss import compute_loss
 from yawil.learn.sampling import (
@@ -45,6 +45,7 @@ from yawil.learn.sampling import (
     sequential_batches,
     step_generator,
 )
+from yawil.learn.setup import build_model, check_resumable, make_loader, open_splits
 from yawil.learn.state import Position, rng_states, seed_globals, set_rng_states
 from yawil.learn.stop import STOP, StopRequested, check_stop, stop_between_steps
 from yawil.learn.validate import VAL_KEYS, validate
@@ -60,78 +61,6 @@ class TrainResult:
     best_val: float
     metrics: list[dict[str, float]]
     stopped_by: str  # "epochs" | "max_steps" | "max_minutes"
-
-
-def _loader(dataset: Any, batches: list[list[int]], cfg: TrainConfig, runtime: Runtime) -> Any:
-    from torch.utils.data import DataLoader
-
-    return DataLoader(
-        dataset,
-        batch_sampler=batches,
-        num_workers=cfg.workers,
-        pin_memory=runtime.device.type == "cuda",
-        generator=torch.Generator().manual_seed(cfg.seed),  # keeps the global RNG untouched
-        persistent_workers=False,
-    )
-
-
-def open_splits(cfg: TrainConfig) -> tuple[Any, Any, dict[str, Any]]:
-    """Train and validation datasets (split by episode) and the guidance config they were written with."""
-    from yawil import data
-
-    if not cfg.data:
-        raise ValueError("train config: data is empty; give at least one dataset root (--data DIR)")
-    for root in cfg.data:
-        if not Path(root).exists():
-            raise FileNotFoundError(f"dataset root {root} does not exist")
-    fraction = cfg.val_fraction
-    n = len(data.split_episodes(cfg.data, 0.0, cfg.seed)[0])
-    if fraction > 0 and n < 2:  # the smallest natural first run (`collect --frames 400`) must train
-        print(f"warning: {n} episode in {', '.join(map(str, cfg.data))}: too few to hold one out, training without "
-              "validation (best.pt is the last checkpoint); collect more episodes for a validation loss",
-              file=sys.stderr)
-        fraction = 0.0
-    train_eps, val_eps = data.split_episodes(cfg.data, fraction, cfg.seed)
-    train_ds = data.DrivingDataset(cfg.data, episodes=train_eps)
-    val_ds = data.DrivingDataset(cfg.data, episodes=val_eps)
-    return train_ds, val_ds, dataset_guidance_config(train_ds)
-
-
-def dataset_guidance_config(dataset: Any) -> dict[str, Any]:
-    gc = dataset.guidance_config
-    return dict(gc.to_dict() if hasattr(gc, "to_dict") else gc)
-
-
-def build_model(cfg: TrainConfig, guidance_dims: Mapping[str, int]) -> Any:
-    """Create the network; a guided model gets the guidance width of the dataset unless told otherwise."""
-    from yawil import models
-
-    args = dict(cfg.model_args)
-    model = models.create(cfg.model, seed=cfg.seed, **args)
-    kind = model.guidance
-    if kind is not None and "guidance_dim" not in args and model.guidance_dim != guidance_dims[kind]:
-        model = models.create(cfg.model, seed=cfg.seed, guidance_dim=guidance_dims[kind], **args)
-    if kind is not None and model.guidance_dim != guidance_dims[kind]:
-        raise ValueError(
-            f"model_args.guidance_dim={model.guidance_dim} but the dataset's {kind} guidance has {guidance_dims[kind]} values"
-        )
-    if cfg.pretrained is not None:
-        if not Path(cfg.pretrained).is_file():
-            raise FileNotFoundError(f"pretrained weights {cfg.pretrained} do not exist")
-        model.load_pretrained(cfg.pretrained)
-    return model
-
-
-def check_resumable(saved: Mapping[str, Any], cfg: TrainConfig, path: Path) -> None:
-    now = cfg.to_dict()
-    for key, value in now.items():
-        if key in RESUMABLE_CHANGES or key == "out":
-            continue
-        if saved.get(key) != value:
-            raise ValueError(
-                f"cannot resume {path}: setting {key!r} was {saved.get(key)!r}, now {value!r} "
-                f"(only {sorted(RESUMABLE_CHANGES)} may change on resume)"
-            )
 
 
 def train(
@@ -244,7 +173,7 @@ def _train(
         writer: Any = SummaryWriter(str(out / "tb"), purge_step=pos.step if resume else None)
     else:
         writer = distributed.NoWriter()
-    val_loader = _loader(val_ds, sequential_batches(len(val_ds), cfg.batch_size), cfg, runtime)
+    val_loader = make_loader(val_ds, sequential_batches(len(val_ds), cfg.batch_size), cfg, runtime)
     started = time.monotonic()
     stopped_by = "epochs"
 
@@ -333,11 +262,11 @@ def _train(
         batches = epoch_batches(len(train_ds), cfg.batch_size, cfg.seed, pos.epoch, p)
         sizes: list[int] | None = None  # global batch sizes, under torchrun
         if d is None:
-            loader = _loader(train_ds, batches[pos.batch :], cfg, runtime)
+            loader = make_loader(train_ds, batches[pos.batch :], cfg, runtime)
         else:
             batches = distributed.usable_batches(batches, d.world)
             mine, sizes = distributed.rank_batches(batches[pos.batch :], d)
-            loader = _loader(train_ds, mine, cfg, runtime)
+            loader = make_loader(train_ds, mine, cfg, runtime)
         n_batches = len(batches)
         bar = tqdm(
             total=n_batches, initial=pos.batch, desc=f"epoch {pos.epoch + 1}/{cfg.epochs}",

@@ -1,0 +1,86 @@
+"""What a run starts from: the dataset splits (by episode) and their loaders, the network (with the
+dataset's guidance width), and the check that a resumed run continues the same run."""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from yawil.learn.config import RESUMABLE_CHANGES, TrainConfig
+from yawil.policy.runtime import Runtime
+
+
+def make_loader(dataset: Any, batches: list[list[int]], cfg: TrainConfig, runtime: Runtime) -> Any:
+    from torch.utils.data import DataLoader
+
+    return DataLoader(
+        dataset,
+        batch_sampler=batches,
+        num_workers=cfg.workers,
+        pin_memory=runtime.device.type == "cuda",
+        generator=torch.Generator().manual_seed(cfg.seed),  # keeps the global RNG untouched
+        persistent_workers=False,
+    )
+
+
+def open_splits(cfg: TrainConfig) -> tuple[Any, Any, dict[str, Any]]:
+    """Train and validation datasets (split by episode) and the guidance config they were written with."""
+    from yawil import data
+
+    if not cfg.data:
+        raise ValueError("train config: data is empty; give at least one dataset root (--data DIR)")
+    for root in cfg.data:
+        if not Path(root).exists():
+            raise FileNotFoundError(f"dataset root {root} does not exist")
+    fraction = cfg.val_fraction
+    n = len(data.split_episodes(cfg.data, 0.0, cfg.seed)[0])
+    if fraction > 0 and n < 2:  # the smallest natural first run (`collect --frames 400`) must train
+        print(f"warning: {n} episode in {', '.join(map(str, cfg.data))}: too few to hold one out, training without "
+              "validation (best.pt is the last checkpoint); collect more episodes for a validation loss",
+              file=sys.stderr)
+        fraction = 0.0
+    train_eps, val_eps = data.split_episodes(cfg.data, fraction, cfg.seed)
+    train_ds = data.DrivingDataset(cfg.data, episodes=train_eps)
+    val_ds = data.DrivingDataset(cfg.data, episodes=val_eps)
+    return train_ds, val_ds, dataset_guidance_config(train_ds)
+
+
+def dataset_guidance_config(dataset: Any) -> dict[str, Any]:
+    gc = dataset.guidance_config
+    return dict(gc.to_dict() if hasattr(gc, "to_dict") else gc)
+
+
+def build_model(cfg: TrainConfig, guidance_dims: Mapping[str, int]) -> Any:
+    """Create the network; a guided model gets the guidance width of the dataset unless told otherwise."""
+    from yawil import models
+
+    args = dict(cfg.model_args)
+    model = models.create(cfg.model, seed=cfg.seed, **args)
+    kind = model.guidance
+    if kind is not None and "guidance_dim" not in args and model.guidance_dim != guidance_dims[kind]:
+        model = models.create(cfg.model, seed=cfg.seed, guidance_dim=guidance_dims[kind], **args)
+    if kind is not None and model.guidance_dim != guidance_dims[kind]:
+        raise ValueError(
+            f"model_args.guidance_dim={model.guidance_dim} but the dataset's {kind} guidance has {guidance_dims[kind]} values"
+        )
+    if cfg.pretrained is not None:
+        if not Path(cfg.pretrained).is_file():
+            raise FileNotFoundError(f"pretrained weights {cfg.pretrained} do not exist")
+        model.load_pretrained(cfg.pretrained)
+    return model
+
+
+def check_resumable(saved: Mapping[str, Any], cfg: TrainConfig, path: Path) -> None:
+    now = cfg.to_dict()
+    for key, value in now.items():
+        if key in RESUMABLE_CHANGES or key == "out":
+            continue
+        if saved.get(key) != value:
+            raise ValueError(
+                f"cannot resume {path}: setting {key!r} was {saved.get(key)!r}, now {value!r} "
+                f"(only {sorted(RESUMABLE_CHANGES)} may change on resume)"
+            )

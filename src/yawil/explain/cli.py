@@ -1,6 +1,6 @@
 """`yawil explain`: attention heat maps of a trained agent, on dataset frames or on a driven episode.
 
-The command line only: the work is `yawil.explain.explain_frames` and `explain_episode`.
+The command line only: the work is `yawil.explain.attention.explain_frames` and `explain_episode`.
 """
 
 from __future__ import annotations

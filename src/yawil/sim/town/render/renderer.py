@@ -5,6 +5,9 @@ This module holds the Panda3D side: the engine and pipes, the scene graph built 
 wet road and puddles; the camera model is in `camera` and the haze and rain in `weather_fx`. Panda3D allows
 one ShowBase per process, so we use a module-level GraphicsEngine and one offscreen buffer per renderer; a
 renderer's buffer is active only while it renders, so several renderers may coexist.
+
+One file of ~480 lines on purpose: its parts share that module-level engine and the Panda3D state it
+holds; the parts without Panda3D (camera, meshes, weather effects) are already the modules beside it.
 """
 
 from __future__ import annotations

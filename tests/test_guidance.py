@@ -22,11 +22,10 @@ from yawil.guidance import (
     resample_route,
     route_headings,
     sim_yaw_guidance,
-    wrap_to_pi,
     xy_guidance,
     yaw_guidance,
 )
-from yawil.sim.types import RoadOption
+from yawil.sim.types import RoadOption, wrap_angle
 
 BOUNDS = (-1000.0, -1000.0, 1000.0, 1000.0)
 ATOL = 2e-4  # float32 output, float64 maths
@@ -34,7 +33,7 @@ ATOL = 2e-4  # float32 output, float64 maths
 
 def angle_close(a: np.ndarray, b: np.ndarray, atol: float = ATOL) -> bool:
     """Angles equal up to wrapping: a value near +pi and one near -pi are the same heading."""
-    return bool(np.all(np.abs(wrap_to_pi(np.asarray(a, np.float64) - np.asarray(b, np.float64))) < atol))
+    return bool(np.all(np.abs(wrap_angle(np.asarray(a, np.float64) - np.asarray(b, np.float64))) < atol))
 
 
 def rotate(xy: np.ndarray, theta: float, offset: np.ndarray) -> np.ndarray:
@@ -65,7 +64,7 @@ def random_routes(draw: st.DrawFn) -> tuple[np.ndarray, np.ndarray, int, float, 
     headings = heading0 + np.cumsum(turns)
     steps = lengths[:, None] * np.column_stack((np.cos(headings), np.sin(headings)))
     xy = np.vstack(([0.0, 0.0], np.cumsum(steps, axis=0)))
-    lane = wrap_to_pi(np.concatenate((headings[:1], headings)))
+    lane = wrap_angle(np.concatenate((headings[:1], headings)))
     seg = draw(st.integers(0, n - 2))
     t = draw(st.floats(0.0, 1.0))
     lateral = draw(st.floats(-0.2, 0.2))
@@ -101,7 +100,7 @@ def test_yaw_and_sim_yaw_invariant_under_rigid_motion(
     xy2 = rotate(xy, theta, offset)
     ego2 = rotate(ego[None, :], theta, offset)[0]
     g2, i2 = compute_guidance(
-        xy2, wrap_to_pi(lane + theta), ego2, float(wrap_to_pi(ego_yaw + theta)), BOUNDS, cfg, hint_index=seg
+        xy2, wrap_angle(lane + theta), ego2, float(wrap_angle(ego_yaw + theta)), BOUNDS, cfg, hint_index=seg
     )
     assert angle_close(g1.yaw, g2.yaw)
     assert angle_close(g1.sim_yaw, g2.sim_yaw)
@@ -160,16 +159,23 @@ def test_wrap_across_pi_west_with_slight_left_bend() -> None:
     g = yaw_guidance(pts)
     assert np.all(np.abs(g) < 0.2)
     assert g[-1] == pytest.approx(bend, abs=1e-6)
-    assert np.allclose(sim_yaw_guidance(wrap_to_pi(headings[:15])), g, atol=1e-6)
+    assert np.allclose(sim_yaw_guidance(wrap_angle(headings[:15])), g, atol=1e-6)
 
 
-def test_wrap_to_pi_range_and_values() -> None:
+def test_wrap_angle_range_and_values() -> None:
     a = np.array([math.pi, -math.pi, 3 * math.pi, -3 * math.pi, 2 * math.pi, 0.5, -0.5, 7.0, -7.0])
-    w = wrap_to_pi(a)
+    w = wrap_angle(a)
+    assert isinstance(w, np.ndarray) and w.dtype == np.float64
     assert np.all(w > -math.pi) and np.all(w <= math.pi)
     assert w[0] == w[1] == w[2] == w[3] == pytest.approx(math.pi)
     assert w[4] == pytest.approx(0.0)
     assert np.allclose(np.cos(w), np.cos(a)) and np.allclose(np.sin(w), np.sin(a))
+    # a scalar (float, int or numpy scalar) gives a float in the same range, equal to the array's to rounding
+    for x in (*a.tolist(), np.float64(7.0), np.float32(-7.0), 4):
+        v = wrap_angle(x)
+        assert type(v) is float and -math.pi < v <= math.pi
+        assert v == pytest.approx(float(wrap_angle([float(x)])[0]), abs=1e-12)
+    assert wrap_angle([-math.pi])[0] == math.pi and wrap_angle(-math.pi) == math.pi
 
 
 # -------------------------------------------------------------------------------------------- resampling
@@ -216,7 +222,7 @@ def test_compute_guidance_matches_the_building_blocks_on_the_whole_route(step: f
     th = np.arange(0.0, 400.0, step) / 25.0
     xy = np.column_stack((25.0 * np.sin(th), 25.0 * (1.0 - np.cos(th))))  # circles, driven many times
     xy = np.vstack((xy[:40], xy[39:40], xy[40:]))  # a duplicate waypoint on the way
-    lane = wrap_to_pi(np.concatenate((th[:40], th[39:40], th[40:])))
+    lane = wrap_angle(np.concatenate((th[:40], th[39:40], th[40:])))
     cfg = GuidanceConfig(spacing=1.7, count=12)
     for hint in (5, len(xy) // 2, len(xy) - 3):
         ego = xy[hint] + [0.05, -0.05]

@@ -19,14 +19,12 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
-from yawil.sim.types import RoadOption
+from yawil.sim.types import RoadOption, wrap_angle
 
 DEFAULT_SPACING = 2.0  # metres between guidance points
 DEFAULT_COUNT = 15  # K
 GUIDANCE_KINDS: tuple[str, ...] = ("yaw", "xy", "sim_yaw")
 REFERENCES: tuple[str, ...] = ("route", "ego")
-
-_TWO_PI = 2.0 * math.pi
 
 
 # --------------------------------------------------------------------------------------------- validation
@@ -148,13 +146,6 @@ class Guidance:
 
 
 # ------------------------------------------------------------------------------------------------ angles
-def wrap_to_pi(a: ArrayLike) -> np.ndarray:
-    """Wrap angles to (-pi, pi] elementwise, so differences across the +-pi seam come out small."""
-    arr = np.asarray(a, dtype=np.float64)
-    w = np.remainder(arr + math.pi, _TWO_PI) - math.pi  # [-pi, pi)
-    return np.where(w <= -math.pi, w + _TWO_PI, w)
-
-
 def route_headings(points: ArrayLike) -> np.ndarray:
     """Heading of each segment from coordinates alone, as a GPS-only car would compute it (the paper)."""
     pts = _points("points", points)
@@ -281,7 +272,7 @@ def yaw_guidance(
     if yaw_noise is not None:
         t_yaw = t_yaw + _vector("yaw_noise", yaw_noise, n=t_yaw.shape[0])
     ref = t_yaw[0] if reference_yaw is None else _finite("reference_yaw", reference_yaw)
-    return wrap_to_pi(t_yaw - ref).astype(np.float32)
+    return wrap_angle(t_yaw - ref).astype(np.float32)
 
 
 def xy_guidance(points: ArrayLike, bounds: Sequence[float]) -> np.ndarray:
@@ -297,7 +288,7 @@ def sim_yaw_guidance(lane_yaw: ArrayLike, reference_yaw: float | None = None) ->
     """(K,) simulator lane headings -> (K,) float32 wrap(lane_yaw - ref); ref = lane_yaw[0] if None."""
     lane = _vector("lane_yaw", lane_yaw)
     ref = lane[0] if reference_yaw is None else _finite("reference_yaw", reference_yaw)
-    return wrap_to_pi(lane - ref).astype(np.float32)
+    return wrap_angle(lane - ref).astype(np.float32)
 
 
 def compute_guidance(
@@ -357,8 +348,8 @@ def compute_guidance(
     yaw = yaw_guidance(points, reference_yaw=ref, yaw_noise=raw)
     sim_yaw = sim_yaw_guidance(lane_k if raw is None else lane_k + raw, reference_yaw=ref)
     if noise is not None and raw is None:
-        yaw = wrap_to_pi(yaw + noise).astype(np.float32)
-        sim_yaw = wrap_to_pi(sim_yaw + noise).astype(np.float32)
+        yaw = wrap_angle(yaw + noise).astype(np.float32)
+        sim_yaw = wrap_angle(sim_yaw + noise).astype(np.float32)
     return Guidance(yaw=yaw, xy=xy_guidance(points[:k], box), sim_yaw=sim_yaw), index
 
 

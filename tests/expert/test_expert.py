@@ -427,8 +427,7 @@ def test_room_before_lights_equals_one_light_at_a_time() -> None:
     """The (lights x vehicles) form gives, to the last bit, what the per-light loop it replaced gave."""
     import math
 
-    from yawil.guidance import wrap_to_pi
-    from yawil.sim.types import LightState
+    from yawil.sim.types import LightState, wrap_angle
 
     expert = Expert()
 
@@ -440,7 +439,7 @@ def test_room_before_lights_equals_one_light_at_a_time() -> None:
             c, s = math.cos(ls.yaw), math.sin(ls.yaw)
             rx, ry = ls.x - pos[:, 0], ls.y - pos[:, 1]
             ahead = rx * c + ry * s - 0.5 * length
-            lane = (np.abs(-rx * s + ry * c) < 1.75) & (np.abs(wrap_to_pi(yaw - ls.yaw)) < math.radians(30.0))
+            lane = (np.abs(-rx * s + ry * c) < 1.75) & (np.abs(wrap_angle(yaw - ls.yaw)) < math.radians(30.0))
             stops = ~is_ped & lane & (ahead > -0.5) & (ahead < 60.0)
             if ls.state == "yellow":
                 stops &= ahead >= spd * spd / (2.0 * expert.config.traffic_yellow_decel)

@@ -13,8 +13,7 @@ import numpy as np
 
 from yawil.expert.config import ExpertConfig
 from yawil.expert.route import Corridor, RouteCache
-from yawil.guidance import wrap_to_pi
-from yawil.sim.types import AgentState, LightState, Observation
+from yawil.sim.types import AgentState, LightState, Observation, wrap_angle
 
 
 @dataclass(frozen=True)
@@ -150,7 +149,7 @@ class HazardScan:
         rear = s_ego - 0.5 * cfg.length
 
         s0, d0, h0 = proj.project(pos)
-        rel0 = wrap_to_pi(yaw - h0)
+        rel0 = wrap_angle(yaw - h0)
         e_lon, e_lat = _extents(rel0, length, width)
         in_corr = d0 < margin + e_lat
         behind = in_corr & (s0 - e_lon < rear)  # beside or behind the ego in its lane: not ours to stop for
@@ -249,7 +248,7 @@ class HazardScan:
         s = np.array([math.sin(ls.yaw) for ls in lit])[:, None]
         rx, ry = lx - pos[None, :, 0], ly - pos[None, :, 1]
         ahead = rx * c + ry * s - 0.5 * length  # front bumper to the stop line
-        lane = (np.abs(-rx * s + ry * c) < 1.75) & (np.abs(wrap_to_pi(yaw - lyaw)) < math.radians(30.0))
+        lane = (np.abs(-rx * s + ry * c) < 1.75) & (np.abs(wrap_angle(yaw - lyaw)) < math.radians(30.0))
         stops = ~is_ped & lane & (ahead > -0.5) & (ahead < 60.0)
         yellow = np.array([ls.state == "yellow" for ls in lit])[:, None]
         stops &= ~yellow | (ahead >= spd * spd / (2.0 * self.config.traffic_yellow_decel))
@@ -277,7 +276,7 @@ class HazardScan:
         step = seg[..., None] * np.stack([np.cos(theta), np.sin(theta)], axis=-1)
         p = pos[:, None, :] + np.cumsum(step, axis=1)  # (m, T, 2)
         s, d, h = proj.project(p)
-        rel = wrap_to_pi(theta - h)
+        rel = wrap_angle(theta - h)
         e_lon, e_lat = _extents(rel, length[:, None], width[:, None])
         horizon = np.where(is_ped, cfg.pedestrian_horizon, cfg.vehicle_horizon)
         inside = (d < margin[:, None] + e_lat) & (s - e_lon > front - 0.5) & (t[None, :] <= horizon[:, None] + 1e-9)
@@ -324,7 +323,7 @@ class HazardScan:
             to_entry = entry - front
             if to_entry < 0.0 or to_entry > 20.0:
                 continue
-            rel = np.abs(wrap_to_pi(yaw - h))
+            rel = np.abs(wrap_angle(yaw - h))
             crossing = (rel > math.radians(30.0)) & (rel < math.radians(150.0))
             busy = (~is_ped & ~in_corr & (spd > 0.5) & crossing & (s >= entry) & (s <= exit_)
                     & (d < cfg.junction_watch + e_lat))

@@ -14,9 +14,11 @@ Conventions (fixed for all backends, see docs/simulator.md):
 from __future__ import annotations
 
 import math
+import numbers
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from enum import Enum, IntEnum
-from typing import Protocol, runtime_checkable
+from typing import Protocol, overload, runtime_checkable
 
 import numpy as np
 
@@ -55,10 +57,32 @@ def command_index(option: int) -> int:
     return COMMANDS.index(opt)
 
 
-def wrap_angle(a: float) -> float:
-    """Wrap an angle to (-pi, pi]."""
-    w = math.remainder(a, 2.0 * math.pi)
-    return math.pi if w == -math.pi else w
+_TWO_PI = 2.0 * math.pi
+
+
+@overload
+def wrap_angle(a: float) -> float: ...
+
+
+@overload
+def wrap_angle(a: np.ndarray | Sequence[float]) -> np.ndarray: ...
+
+
+def wrap_angle(a: float | np.ndarray | Sequence[float]) -> float | np.ndarray:
+    """Wrap angles to (-pi, pi]: the one angle wrap of yawil, for a scalar and elementwise for an array.
+
+    A real scalar (float, int, numpy scalar) gives a float, by `math.remainder` (exact); anything else (an
+    array, a list) a float64 array, by `np.remainder(a + pi, 2 pi) - pi`. The two are the arithmetic the
+    scalar wrap of the simulator and the array wrap of guidance and the expert always used (they can differ
+    in the last bit), kept each where it was so that collected data and records stay bit-identical.
+    """
+    if isinstance(a, numbers.Real):
+        w = math.remainder(a, _TWO_PI)
+        return math.pi if w == -math.pi else w
+    arr = np.asarray(a, dtype=np.float64)
+    v = np.remainder(arr + math.pi, _TWO_PI) - math.pi  # [-pi, pi)
+    out: np.ndarray = np.where(v <= -math.pi, v + _TWO_PI, v)
+    return out
 
 
 @dataclass(frozen=True)

@@ -43,8 +43,9 @@ def default_file_mode() -> int:
 def atomic_file(path: str | os.PathLike[str]) -> Iterator[BinaryIO]:
     """A binary file handle whose content replaces `path` when the block ends without an error: written to a
     temporary file beside it, fsynced, renamed over it. Readers see the old file or the new one, never half
-    of one; on an error the temporary file is removed and `path` is untouched. The one implementation of
-    atomic writes in yawil (checkpoints, manifests, records, reports, plots)."""
+    of one; on an error the temporary file is removed and `path` is untouched. With `atomic_path` (for writers
+    that want a file name) the one implementation of atomic writes in yawil (checkpoints, manifests, records,
+    reports, plots, videos, ONNX graphs)."""
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
@@ -54,6 +55,27 @@ def atomic_file(path: str | os.PathLike[str]) -> Iterator[BinaryIO]:
             yield f
             f.flush()
             os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise
+
+
+@contextlib.contextmanager
+def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
+    """A temporary path beside `path` for writers that take a file name, not a handle (matplotlib, PIL,
+    imageio, the ONNX exporter): it ends in `path`'s extension, so a writer that picks its format by the name
+    picks the same one. When the block ends without an error the file gets `default_file_mode()` and is renamed
+    over `path`; on an error it is removed and `path` is untouched."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, name = tempfile.mkstemp(prefix=f".{path.name}.", suffix=f".tmp{path.suffix}", dir=path.parent)
+    os.close(fd)
+    tmp = Path(name)
+    try:
+        yield tmp
+        os.chmod(tmp, default_file_mode())  # mkstemp makes 0600
         os.replace(tmp, path)
     except BaseException:
         with contextlib.suppress(OSError):

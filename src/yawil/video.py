@@ -31,6 +31,8 @@ def write_video(frames: Sequence[np.ndarray], path: Path, fps: int = 10) -> Path
     """MP4 through imageio-ffmpeg; GIF when ffmpeg is not available. Returns the path written."""
     import imageio.v2 as imageio
 
+    from yawil.fileio import atomic_path
+
     if not frames:
         raise ValueError("write_video needs at least one frame")
     path = Path(path)
@@ -46,19 +48,16 @@ def write_video(frames: Sequence[np.ndarray], path: Path, fps: int = 10) -> Path
         canvas[: f.shape[0], : f.shape[1]] = f
         padded.append(canvas)
     if path.suffix.lower() == ".mp4":
-        tmp = path.with_name(path.stem + ".tmp.mp4")
         try:
-            with imageio.get_writer(tmp, fps=fps, codec="libx264", macro_block_size=1) as writer:
+            with atomic_path(path) as tmp, imageio.get_writer(tmp, fps=fps, codec="libx264",
+                                                              macro_block_size=1) as writer:
                 for f in padded:
                     writer.append_data(f)  # type: ignore[attr-defined]
-            tmp.replace(path)
             return path
         except Exception:  # ffmpeg missing or failing: fall back to GIF
-            tmp.unlink(missing_ok=True)
             path = path.with_suffix(".gif")
-    tmp = path.with_name(path.stem + ".tmp.gif")
-    imageio.mimsave(tmp, padded, duration=1.0 / fps, loop=0)  # type: ignore[arg-type]
-    tmp.replace(path)
+    with atomic_path(path) as tmp:
+        imageio.mimsave(tmp, padded, duration=1.0 / fps, loop=0)  # type: ignore[arg-type]
     return path
 
 

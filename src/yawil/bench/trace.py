@@ -15,15 +15,16 @@ from __future__ import annotations
 
 import argparse
 import csv
+import io
 import os
 import sys
 from dataclasses import dataclass
-from pathlib import Path
 from typing import Any
 
 from yawil.bench.metrics import EpisodeTracker
 from yawil.bench.runner import AgentSpec
 from yawil.bench.suites import Episode, episodes
+from yawil.fileio import write_atomic
 
 COLUMNS = ("time", "speed", "steer", "throttle", "brake", "agent_target_speed", "expert_steer", "expert_throttle",
            "expert_brake", "expert_target_speed", "expert_reason", "lead_stop_m", "lead_speed")
@@ -88,14 +89,11 @@ def trace_episode(ep: Episode, spec: AgentSpec, out: str | os.PathLike[str], exp
                 break
     finally:
         world.close()
-    out = Path(out)
-    out.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out.with_name(out.name + ".tmp")
-    with open(tmp, "w", newline="") as fh:
-        w = csv.writer(fh)
-        w.writerow(COLUMNS)
-        w.writerows(rows)
-    os.replace(tmp, out)
+    text = io.StringIO(newline="")
+    w = csv.writer(text)
+    w.writerow(COLUMNS)
+    w.writerows(rows)
+    write_atomic(out, text.getvalue())
     res = tracker.result()
     return TraceResult(len(rows), bool(res["success"]), res["reason"], float(res["time_s"]), list(res["collisions"]))
 

@@ -143,8 +143,7 @@ def grid_figure(items: Sequence[Explained], alpha: float = DEFAULT_ALPHA, path: 
 
 
 def _save(fig, path: Path) -> None:  # type: ignore[no-untyped-def]
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    tmp = path.with_name(path.stem + ".tmp" + path.suffix)
-    fig.savefig(tmp, dpi=110)
-    tmp.replace(path)
+    from yawil.fileio import atomic_path
+
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=110)

@@ -91,14 +91,12 @@ def _wrap(model: Any, names: list[str]) -> Any:
 def export_onnx(checkpoint: str | Path, onnx_path: str | Path, opset: int = OPSET) -> Path:
     """Write the ONNX file atomically (temporary file, then rename) and return its path."""
     import json
-    import os
-    import tempfile
     import warnings
 
     import onnx
     import torch
 
-    from yawil.fileio import default_file_mode
+    from yawil.fileio import atomic_path
     from yawil.policy.checkpoint import load_checkpoint, model_from_checkpoint
     from yawil.policy.inputs import ModelInputs
 
@@ -114,10 +112,8 @@ def export_onnx(checkpoint: str | Path, onnx_path: str | Path, opset: int = OPSE
     outputs = ["actions", "pred_speed", *[f"attention_{i}" for i in range(n_att)]]
     dynamic = {name: {0: "batch"} for name in names + outputs}
     path = Path(onnx_path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    os.close(fd)
-    try:
+    with atomic_path(path) as tmp_path:
+        tmp = str(tmp_path)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", DeprecationWarning)  # the TorchScript exporter is deprecated, not gone
             warnings.simplefilter("ignore", torch.jit.TracerWarning)  # shape checks traced as constants: intended
@@ -137,11 +133,6 @@ def export_onnx(checkpoint: str | Path, onnx_path: str | Path, opset: int = OPSE
             entry.key, entry.value = key, value
         onnx.checker.check_model(proto)
         onnx.save(proto, tmp)
-        os.chmod(tmp, default_file_mode())  # mkstemp makes 0600
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
     return path
 
 

@@ -297,6 +297,6 @@ def write_demo_report(out: Path, budget: DemoBudget, timings: dict[str, float],
 
 
 def _write(path: Path, text: str) -> None:
-    tmp = path.with_name(f".{path.name}.tmp")
-    tmp.write_text(text, encoding="utf-8")
-    tmp.replace(path)
+    from yawil.fileio import write_atomic
+
+    write_atomic(path, text)

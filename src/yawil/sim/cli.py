@@ -76,6 +76,7 @@ def _view(args: argparse.Namespace) -> int:
     matplotlib.use("Agg")
     from PIL import Image
 
+    from yawil.fileio import atomic_path
     from yawil.sim.town.render.birdseye import draw_birdseye
     from yawil.sim.town.world import EmbeddedWorld
     from yawil.sim.types import Scenario
@@ -99,9 +100,8 @@ def _view(args: argparse.Namespace) -> int:
         for step in range(args.steps + 1):
             if step in shots and obs.image is not None:
                 path = out / f"camera_{step:04d}.png"
-                tmp = path.with_suffix(".tmp.png")
-                Image.fromarray(obs.image).save(tmp)
-                tmp.replace(path)
+                with atomic_path(path) as tmp:
+                    Image.fromarray(obs.image).save(tmp)
                 written.append(path)
             if step < args.steps:
                 obs = world.step(follow_route(obs))
@@ -109,9 +109,8 @@ def _view(args: argparse.Namespace) -> int:
         fig = draw_birdseye(world.town.geometry, route_xy=obs.route.xy, actors=world.actor_views(radius=1e9),
                             ego=world.ego_view(), light_states=world.light_states())
         path = out / "birdseye.png"
-        tmp = path.with_suffix(".tmp.png")
-        fig.savefig(tmp, dpi=120)
-        tmp.replace(path)
+        with atomic_path(path) as tmp:
+            fig.savefig(tmp, dpi=120)
         written.append(path)
     finally:
         world.close()

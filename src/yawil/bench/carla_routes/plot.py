@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 from typing import Any
 
+from yawil.fileio import atomic_path
 from yawil.sim.carla.topology import CarlaTopology
 
 SHOWN = 4  # routes drawn per task
@@ -35,8 +36,7 @@ def plot_routes(topo: CarlaTopology, lists: dict[str, list[Any]], out: str | Pat
         ax.legend(fontsize=7)
     fig.tight_layout()
     path = Path(out)
-    tmp = path.with_name(f".{path.name}.tmp.png")
-    fig.savefig(tmp, dpi=80)
+    with atomic_path(path) as tmp:
+        fig.savefig(tmp, dpi=80)
     plt.close(fig)
-    tmp.replace(path)
     return path

@@ -27,6 +27,7 @@ from typing import Any
 import networkx as nx
 import numpy as np
 
+from yawil.fileio import write_atomic
 from yawil.sim.carla.convert import xy_from_carla, yaw_from_carla
 from yawil.sim.town.map.planner import GOAL_REACH, PRE_JUNCTION, WAYPOINT_STEP, stations
 from yawil.sim.types import Pose, RoadOption, Route, wrap_angle
@@ -424,6 +425,4 @@ def write_map_description(topology_segments: Sequence[Sequence[WaypointTuple]], 
     p = Path(path)
     doc = {"format": MAP_FORMAT, "name": name, "segments": [[list(t) for t in s] for s in topology_segments],
            "lights": [{"id": int(i), "stops": [list(t) for t in stops]} for i, stops in lights]}
-    tmp = p.with_name(p.name + ".tmp")
-    tmp.write_text(json.dumps(doc), encoding="utf-8")
-    tmp.replace(p)
+    write_atomic(p, json.dumps(doc))

@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 from numpy.typing import ArrayLike
 
+from yawil.sim.route_geometry import arc_lengths
 from yawil.sim.types import RoadOption, wrap_angle
 
 DEFAULT_SPACING = 2.0  # metres between guidance points
@@ -154,12 +155,6 @@ def route_headings(points: ArrayLike) -> np.ndarray:
 
 
 # ---------------------------------------------------------------------------------------- route geometry
-def _arc_lengths(route: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Segment lengths and cumulative arc length at each waypoint."""
-    seg = np.linalg.norm(np.diff(route, axis=0), axis=1)
-    return seg, np.concatenate(([0.0], np.cumsum(seg)))
-
-
 def project_on_route(
     route_xy: ArrayLike, point_xy: ArrayLike, hint_index: int | None = None, window: int = 50
 ) -> tuple[int, float]:
@@ -170,7 +165,7 @@ def project_on_route(
     """
     route = _points("route_xy", route_xy)
     i, t = _project(route, _vector("point_xy", point_xy, n=2), hint_index, window)
-    seg, cum = _arc_lengths(route[: i + 2])
+    seg, cum = arc_lengths(route[: i + 2])
     return i, float(cum[i] + t * seg[i])
 
 
@@ -215,12 +210,12 @@ def _clean(
     route: np.ndarray, values: np.ndarray | None = None
 ) -> tuple[np.ndarray, np.ndarray, np.ndarray | None]:
     """Drop zero-length segments (duplicate waypoints), which have no direction to follow."""
-    seg, _ = _arc_lengths(route)
+    seg, _ = arc_lengths(route)
     keep = np.concatenate(([True], seg > 0.0))
     if keep.sum() < 2:
         raise ValueError("route_xy has zero length: all waypoints coincide")
     r = route[keep]
-    _, cum = _arc_lengths(r)
+    _, cum = arc_lengths(r)
     return r, cum, None if values is None else values[keep]
 
 
@@ -335,7 +330,7 @@ def compute_guidance(
     local, local_lane = route[index:end], lane[index:end]
     if not np.any(np.diff(local, axis=0)):  # the ego is on duplicates of the final point: the route's end
         local, local_lane = route, lane
-        s = float(_arc_lengths(route)[1][-1])
+        s = float(arc_lengths(route)[1][-1])
     points = resample_route(local, s, config.spacing, k + 1)
     s_k = s + config.spacing * np.arange(k, dtype=np.float64)
     lane_k = interpolate_lane_yaw(local, local_lane, s_k)

@@ -40,6 +40,7 @@ from gymnasium import spaces
 
 from yawil.expert import Expert
 from yawil.guidance import GUIDANCE_KINDS, GuidanceConfig, compute_guidance, project_on_route, resample_route
+from yawil.sim.route_geometry import arc_lengths
 from yawil.sim.town.map.layout import resolve_town
 from yawil.sim.town.world import EmbeddedWorld
 from yawil.sim.types import Control, EventKind, Observation, Scenario, command_index, validate_scenario
@@ -327,8 +328,7 @@ class _BirdsEye:
         """A new episode: paint its route once onto a copy of the map."""
         img = self.background.copy()
         route = np.asarray(obs.route.xy, dtype=np.float64)
-        seg = np.linalg.norm(np.diff(route, axis=0), axis=1)
-        s = np.concatenate(([0.0], np.cumsum(seg)))
+        _, s = arc_lengths(route)
         fine = np.linspace(0.0, s[-1], max(2, int(s[-1] * self.px_per_m * 2) + 1))  # half-pixel steps: no gaps
         dense = np.column_stack((np.interp(fine, s, route[:, 0]), np.interp(fine, s, route[:, 1])))
         self._dots(img, self._px(dense), _ROUTE, 1)

@@ -30,6 +30,7 @@ from yawil.data.schema import DRIVERS, LEAD_RANGE, LIGHT_RANGE, SPEED_REASONS, F
 from yawil.data.writer import DatasetWriter, EpisodeWriter
 from yawil.expert import Expert, ExpertConfig, ExpertState
 from yawil.guidance import GuidanceConfig, compute_guidance
+from yawil.sim.route_geometry import RouteGeometry
 from yawil.sim.types import DT, Control, EventKind, Observation, RoadOption, Route, Scenario, World
 from yawil.sim.weather import get_weather
 
@@ -308,14 +309,8 @@ class _Keeper:
 
 def _route_curvature(xy: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """(arc length of each waypoint, |curvature| at each waypoint over a +-2.5 m window)."""
-    seg = np.diff(xy, axis=0)
-    s = np.concatenate([[0.0], np.cumsum(np.linalg.norm(seg, axis=1))])
-    h = np.unwrap(np.arctan2(seg[:, 1], seg[:, 0]))
-    h = np.concatenate([h, h[-1:]])
-    lo = np.searchsorted(s, s - 2.5)
-    hi = np.minimum(np.searchsorted(s, s + 2.5, side="right") - 1, len(s) - 1)
-    ds = np.maximum(s[hi] - s[lo], 1e-6)
-    return s, np.where(hi > lo, np.abs(h[hi] - h[lo]) / ds, 0.0)
+    geo = RouteGeometry(xy)
+    return geo.s, geo.waypoint_curvature(2.5)
 
 
 def run_episode(

@@ -1,5 +1,6 @@
-"""The route as the expert reads it, computed once per episode: arc lengths, curvature, junction spans,
-projection with a hint (`RouteCache`), and a stretch of it to project many agents at once (`Corridor`)."""
+"""The route as the expert reads it, computed once per episode: its geometry (`yawil.sim.route_geometry`) with a
+tail past the goal, curvature and junction spans (`RouteCache`), and a stretch of it to project many agents at
+once (`Corridor`)."""
 
 from __future__ import annotations
 
@@ -7,11 +8,14 @@ import math
 
 import numpy as np
 
+from yawil.sim.route_geometry import RouteGeometry
 from yawil.sim.types import RoadOption, Route
 
 
-class RouteCache:
-    """Arc lengths and curvature of one route, computed once per episode."""
+class RouteCache(RouteGeometry):
+    """The route's geometry (`RouteGeometry`: arc lengths, headings, projection with a hint, point at s) with a
+    straight tail past the goal, plus what the expert reads from it: segment curvature and junction spans.
+    Computed once per episode."""
 
     TAIL = 12  # metres of straight road assumed past the goal
 
@@ -24,27 +28,11 @@ class RouteCache:
         # front overshoots the goal: a queue standing past it was invisible, and the ego ran into its tail)
         end_yaw = float(route.lane_yaw[-1])
         tail = xy[-1] + np.arange(1.0, self.TAIL + 0.5)[:, None] * np.array([math.cos(end_yaw), math.sin(end_yaw)])
-        self.xy = xy = np.vstack([xy, tail])
-        seg = np.diff(xy, axis=0)
-        seg_len = np.linalg.norm(seg, axis=1)
-        self.seg_len = np.maximum(seg_len, 1e-9)
-        self.s = np.concatenate([[0.0], np.cumsum(seg_len)])
-        self.heading = np.arctan2(seg[:, 1], seg[:, 0])  # (N-1+TAIL,)
+        super().__init__(np.vstack([xy, tail]))  # heading: (N-1+TAIL,)
         self.length = float(self.s[-1 - len(tail)])  # the route's, without the tail
-        self.curvature = self._curvature(window=2.5)
+        self.curvature = self.segment_curvature(window=2.5)
         self.options = np.asarray(route.options, dtype=np.int64)
         self.junctions = self._junction_spans()
-
-    def _curvature(self, window: float) -> np.ndarray:
-        """|dheading/ds| at each segment, over +-window metres (smooths the 1 m sampling)."""
-        mid = 0.5 * (self.s[:-1] + self.s[1:])
-        lo = np.searchsorted(mid, mid - window, side="left")
-        hi = np.minimum(np.searchsorted(mid, mid + window, side="right") - 1, len(mid) - 1)
-        unwrapped = np.unwrap(self.heading)
-        dh = np.abs(unwrapped[hi] - unwrapped[lo])
-        ds = np.maximum(mid[hi] - mid[lo], 1e-6)
-        k = np.where(hi > lo, dh / ds, 0.0)
-        return np.asarray(k, dtype=np.float64)
 
     def _junction_spans(self) -> list[tuple[float, float]]:
         """(stop line s, exit s) of each signalised junction: the exit is where LANEFOLLOW resumes after the
@@ -65,45 +53,6 @@ class RouteCache:
 
     def in_junction(self, s: float, margin: float = 5.0) -> bool:
         return any(lo - margin <= s <= hi + margin for lo, hi in self.junctions)
-
-    def project(self, p: np.ndarray, hint: int, back: int = 5, ahead: int = 40) -> tuple[int, float, float]:
-        """(segment, arc length, signed lateral offset, left positive) of p near the hinted waypoint."""
-        nseg = len(self.heading)
-        lo = min(max(hint - back, 0), nseg - 1)
-        hi = min(max(hint + ahead, lo + 1), nseg)
-        a = self.xy[lo:hi]
-        d = self.xy[lo + 1 : hi + 1] - a
-        t = np.einsum("ij,ij->i", p - a, d) / (self.seg_len[lo:hi] ** 2)
-        lower = np.zeros_like(t)
-        upper = np.ones_like(t)
-        if lo == 0:
-            lower[0] = -np.inf  # before the route's start and past its end: extrapolate the end segments
-        if hi == nseg:
-            upper[-1] = np.inf
-        t = np.clip(t, lower, upper)
-        foot = a + t[:, None] * d
-        dist = np.linalg.norm(p - foot, axis=1)
-        k = int(np.argmin(dist))
-        i = lo + k
-        s = float(self.s[i] + t[k] * self.seg_len[i])
-        cross = d[k, 0] * (p[1] - a[k, 1]) - d[k, 1] * (p[0] - a[k, 0])
-        return i, s, float(math.copysign(dist[k], cross))
-
-    def point_at(self, s: float) -> np.ndarray:
-        """The route point at arc length s (the tail past the goal included); beyond the tail, extrapolated."""
-        end = float(self.s[-1])
-        if s >= end:
-            return np.asarray(self.xy[-1] + (s - end) * np.array([math.cos(self.heading[-1]), math.sin(self.heading[-1])]))
-        s = max(s, 0.0)
-        i = min(int(np.searchsorted(self.s, s, side="right")) - 1, len(self.heading) - 1)
-        t = (s - self.s[i]) / self.seg_len[i]
-        return np.asarray(self.xy[i] + t * (self.xy[i + 1] - self.xy[i]))
-
-    def window(self, s0: float, s1: float) -> tuple[int, int]:
-        """Segment index range [lo, hi) covering arc lengths s0..s1."""
-        lo = max(int(np.searchsorted(self.s, s0, side="right")) - 1, 0)
-        hi = min(int(np.searchsorted(self.s, s1, side="left")) + 1, len(self.heading))
-        return lo, max(hi, lo + 1)
 
 
 class Corridor:

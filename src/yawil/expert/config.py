@@ -4,7 +4,7 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, fields
 
 
@@ -80,8 +80,8 @@ class ExpertConfig:
         return {k: float(v) for k, v in asdict(self).items()}
 
     @classmethod
-    def from_items(cls, items: Sequence[str], option: str = "--expert-arg") -> ExpertConfig:
-        """`["comfort_decel=1.5", ...]` (command-line KEY=VALUE items) -> a config; the rest keep their defaults."""
+    def parse_items(cls, items: Sequence[str], option: str = "--expert-arg") -> dict[str, float]:
+        """`["comfort_decel=1.5", ...]` (command-line KEY=VALUE items) -> {setting: number}, keys checked."""
         known = {f.name for f in fields(cls)}
         values: dict[str, float] = {}
         for item in items:
@@ -94,6 +94,20 @@ class ExpertConfig:
                 values[key] = float(text)
             except ValueError:
                 raise ValueError(f"{option} {item!r}: expected a number after '='") from None
+        return values
+
+    @classmethod
+    def from_items(cls, items: Sequence[str], option: str = "--expert-arg") -> ExpertConfig:
+        """A config from command-line KEY=VALUE items; the rest keep their defaults."""
+        return cls(**cls.parse_items(items, option))
+
+    @classmethod
+    def from_settings(cls, values: Mapping[str, float], option: str = "expert_args") -> ExpertConfig:
+        """A config from stored {setting: number} (a run's settings); an unknown key names itself."""
+        unknown = sorted(set(values) - {f.name for f in fields(cls)})
+        if unknown:
+            raise ValueError(f"{option}: unknown expert setting {unknown[0]!r}; known: "
+                             f"{', '.join(sorted(f.name for f in fields(cls)))}")
         return cls(**values)
 
     def changes(self) -> dict[str, float]:

@@ -91,7 +91,7 @@ class DaggerConfig:
     def expert_config(self) -> Any:
         from yawil.expert import ExpertConfig
 
-        return ExpertConfig.from_items([f"{k}={v}" for k, v in self.expert_args.items()], "--expert-arg")
+        return ExpertConfig.from_settings(self.expert_args, "--expert-arg")
 
     def beta_of(self, r: int) -> float:
         return float(self.beta[min(r, len(self.beta)) - 1])
@@ -299,8 +299,7 @@ def _floats(text: str, option: str) -> tuple[float, ...]:
 def _expert_args(items: Sequence[str]) -> dict[str, float]:
     from yawil.expert import ExpertConfig
 
-    ExpertConfig.from_items(items)  # one line naming the bad item
-    return {k: float(v) for k, _, v in (item.partition("=") for item in items)}
+    return ExpertConfig.parse_items(items)  # the values are checked by DaggerConfig
 
 
 def _train_args(items: Sequence[str]) -> dict[str, Any]:

@@ -44,8 +44,8 @@ TIMERS = {"expert": 0.0, "guidance": 0.0}
 
 
 def _instrument() -> None:
-    """Time the expert and the guidance inside the real loop (the collector looks them up at call time)."""
-    import yawil.data.collect as c
+    """Time the expert and the guidance inside the real loop (the episode loop looks them up at call time)."""
+    import yawil.data.episode as c
 
     base_expert, base_guidance = c.Expert, c.compute_guidance
 

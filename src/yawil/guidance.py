@@ -170,7 +170,11 @@ def project_on_route(
 
 
 def _project(route: np.ndarray, p: np.ndarray, hint_index: int | None, window: int) -> tuple[int, float]:
-    """(segment index, fraction along it) of the nearest point, searching near the hint if there is one."""
+    """(segment index, fraction along it) of the nearest point, searching near the hint if there is one.
+
+    Not `RouteGeometry.project`: that one extrapolates past the route's ends (the expert's lateral error off
+    the end of a route) and searches an asymmetric window; guidance clamps to the route, searches the whole
+    route without a hint, and its values are part of every stored dataset, so it keeps this arithmetic."""
     n_seg = route.shape[0] - 1
     lo, hi = 0, n_seg
     if hint_index is not None:

@@ -15,9 +15,7 @@ import pytest
 from yawil import __version__
 from yawil.bench.records import PROTOCOL, EpisodeLog, check_run_info
 from yawil.bench.report import (
-    git_commit,
     load_results,
-    provenance,
     success_table,
     summary_table,
     violations_table,
@@ -25,6 +23,7 @@ from yawil.bench.report import (
 )
 from yawil.cli import main
 from yawil.fileio import default_file_mode, write_atomic
+from yawil.provenance import git_commit, provenance
 
 
 @pytest.fixture

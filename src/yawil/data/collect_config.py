@@ -12,6 +12,7 @@ from typing import Any
 from yawil.sim.weather import get_weather
 
 COLLISION_POLICIES: tuple[str, ...] = ("trim", "keep", "discard")
+DEFAULT_FRAMES = 200_000  # `collect`'s frame budget when neither frames nor episodes is given (the paper's size)
 
 
 @dataclass(frozen=True)

@@ -17,9 +17,9 @@ def main(argv: list[str] | None = None) -> int:
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--xodr", default=None, metavar="PATH",
                    help="CARLA's OpenDRIVE file of the town (e.g. Town01.xodr): no server; needs exactly one --town")
-    p.add_argument("--host", default="localhost")
-    p.add_argument("--port", type=int, default=2000)
-    p.add_argument("--timeout", type=float, default=20.0, help="client time-out in seconds (map loading is slow)")
+    from yawil.sim.carla.connection import add_connection_arguments
+
+    add_connection_arguments(p, timeout=20.0, timeout_help="client time-out in seconds (map loading is slow)", prefix="")
     p.add_argument("--town", action="append", choices=["town01", "town02"], help="repeatable; default both")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--out", default=None, help="folder (default: the package's yawil/bench/carla_routes)")
@@ -87,11 +87,12 @@ def _from_xodr(path: Any, town: str, args: argparse.Namespace, folder: Any) -> i
 
 def _from_server(towns: list[str], args: argparse.Namespace, folder: Any) -> int:
     from yawil.bench.carla_routes import client_version, write_route_file
+    from yawil.sim.carla.connection import connection_from_args
     from yawil.sim.carla.errors import CarlaSetupError
     from yawil.sim.carla.world import CarlaWorld, carla_town
 
     try:
-        world = CarlaWorld(host=args.host, port=args.port, timeout=args.timeout)
+        world = CarlaWorld(**connection_from_args(args).kwargs())
     except CarlaSetupError as err:
         print(f"error: {err}", file=sys.stderr)
         return 2

@@ -7,6 +7,10 @@ Traffic Manager and pedestrians with their AI controllers, all seeded. Each step
 ticks the server once, reads the ego and its sensors, runs yawil's criteria and returns an Observation in
 yawil's frame. Any RuntimeError of the client during an episode (lost connection, crashed server,
 time-out) is raised as `SimulatorError`; `reconnect()` starts over with a new client.
+
+One class of ~500 lines on purpose: its methods share the client, the spawned actors and the sensor queues
+of the episode; the parts that need no server (conversions, topology and planning, infraction geometry,
+weather, connection defaults) are already the modules beside it.
 """
 
 from __future__ import annotations
@@ -21,6 +25,7 @@ from typing import Any
 
 import numpy as np
 
+from yawil.sim.carla.connection import CarlaConnection
 from yawil.sim.carla.convert import (
     CAMERA_FOV,
     CAMERA_HEIGHT,
@@ -89,7 +94,8 @@ class CarlaWorld:
     host and port. The server's world settings are saved on connect and restored by `close()`.
     """
 
-    def __init__(self, host: str = "localhost", port: int = 2000, timeout: float = 10.0, tm_port: int = 8000,
+    def __init__(self, host: str = CarlaConnection.host, port: int = CarlaConnection.port,
+                 timeout: float = CarlaConnection.timeout, tm_port: int = 8000,
                  ego_blueprint: str = EGO_BLUEPRINT, client: Any = None) -> None:
         if not isinstance(host, str) or not host:
             raise ValueError(f"host must be a non-empty string, got {host!r}")

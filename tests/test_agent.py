@@ -3,6 +3,7 @@ post-processing, noise options."""
 
 from __future__ import annotations
 
+import math
 from pathlib import Path
 from typing import Any
 
@@ -153,3 +154,42 @@ def test_speed_control_drives_the_predicted_target_speed(tiny_checkpoint: Any) -
     assert c1.throttle == pytest.approx(t_want) and c1.brake == pytest.approx(b_want if b_want >= 0.1 else 0.0)
     with pytest.raises(ValueError, match="aux head"):
         Agent.from_checkpoint(tiny_checkpoint("yaw-guided", guidance=GC, spread=True, guidance_dim=K)[0], speed_control=True)
+
+
+def test_lead_speed_control_caps_the_target_by_the_predicted_lead(tiny_checkpoint: Any) -> None:
+    """speed_control="lead": the target speed is the least of the head's and the expert's braking rule on the
+    head's predicted lead vehicle; with no lead predicted (distance near LEAD_RANGE) it is the head's own."""
+    from yawil.agent import LEAD_DECEL, LEAD_SEEN
+    from yawil.expert import hazard_speed
+
+    path, _ = tiny_checkpoint("yilratt", guidance=GC, spread=True, guidance_dim=K, dropout=0.0, aux=True)
+    target = Agent.from_checkpoint(path, precision="fp32", speed_control="target")
+    lead = Agent.from_checkpoint(path, precision="fp32", speed_control="lead")
+    assert Agent.from_checkpoint(path, precision="fp32", speed_control=True).speed_mode == "target"
+    obs = observation(speed=3.0)
+    for d_scaled, capped in ((0.04, True), (0.99, False)):  # a lead predicted 2 m ahead; none
+        for agent in (target, lead):
+            last = [m for m in agent.model.aux_head.modules() if isinstance(m, torch.nn.Linear)][-1]
+            with torch.no_grad():
+                last.weight[1:3].zero_()  # the lead outputs become constants: distance, and a standing lead
+                last.bias[1] = d_scaled
+                last.bias[2] = float(agent.norm.speed(torch.tensor([[0.0]]))[0, 0])
+            agent.reset()
+            agent.act(obs)
+        a, b = target.last, lead.last
+        assert a is not None and b is not None and a.target_speed is not None and b.target_speed is not None
+        assert a.lead_distance == b.lead_distance and a.lead_distance is not None and b.lead_speed is not None
+        assert (a.lead_distance < LEAD_SEEN) is capped and b.lead_speed == pytest.approx(0.0, abs=1e-4)
+        want = min(a.target_speed, hazard_speed(a.lead_distance, 0.0, LEAD_DECEL)) if capped else a.target_speed
+        assert b.target_speed == pytest.approx(want)
+    with pytest.raises(ValueError, match="speed_control"):
+        Agent.from_checkpoint(path, speed_control="brake")
+
+
+def test_hazard_speed_is_the_experts_braking_rule() -> None:
+    from yawil.expert import hazard_speed
+
+    assert hazard_speed(8.0, 0.0, 2.0) == pytest.approx(math.sqrt(32.0))  # stop at 8 m braking at 2 m/s^2
+    assert hazard_speed(0.0, 0.0, 2.0) == 0.0
+    assert hazard_speed(10.0, 3.0, 2.0) == pytest.approx(min(math.sqrt(9.0 + 40.0), 3.0 + 5.0))  # settle behind
+    assert hazard_speed(-2.0, 3.0, 2.0) == pytest.approx(2.0)  # too close behind a mover: slower than it

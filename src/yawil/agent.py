@@ -21,7 +21,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from yawil.expert import ExpertConfig
+from yawil.data.schema import LEAD_RANGE
+from yawil.expert import ExpertConfig, hazard_speed
 from yawil.guidance import COMMAND_NOISE_MODES, YAW_NOISE_MODES, CommandNoise, GuidanceConfig
 from yawil.policy.checkpoint import Norm, load_checkpoint, model_from_checkpoint
 from yawil.policy.inputs import (
@@ -71,6 +72,24 @@ class PostProcess:
 
 _EXPERT = ExpertConfig()  # the speed controller's gains are the expert's, from the one place they are set
 
+# How throttle and brake are made (`speed_control`): None, the network's own throttle and brake; "target", the
+# PI below on the aux head's target speed; "lead", the same with the target capped by the expert's braking rule
+# (`hazard_speed`) applied to the aux head's predicted lead vehicle (distance to its stop point, its speed).
+SPEED_CONTROLS: tuple[str, ...] = ("target", "lead")
+LEAD_DECEL = 1.5  # m/s^2: the "lead" cap's braking profile, gentler than the expert's 2.5 so that it binds earlier
+LEAD_SEEN = 0.9 * LEAD_RANGE  # m: a predicted lead distance beyond this counts as no lead (the label of none is LEAD_RANGE)
+
+
+def speed_control_mode(value: bool | str | None) -> str | None:
+    """Normalise the option: False/None -> None, True -> "target" (its meaning before "lead" existed)."""
+    if value is None or value is False:
+        return None
+    if value is True:
+        return "target"
+    if value not in SPEED_CONTROLS:
+        raise ValueError(f"speed_control={value!r}: expected one of {', '.join(SPEED_CONTROLS)} (or true / false)")
+    return str(value)
+
 
 @dataclass
 class SpeedControl:
@@ -118,7 +137,9 @@ class StepOutput:
     guidance: np.ndarray | None  # the guidance vector given (before normalisation)
     command: int | None  # the branch index given
     control: Control = field(default_factory=Control)
-    target_speed: float | None = None  # m/s, from the aux head (models built with aux=true)
+    target_speed: float | None = None  # m/s, from the aux head (models built with aux=true), after any "lead" cap
+    lead_distance: float | None = None  # m to the lead vehicle's stop point, from the aux head
+    lead_speed: float | None = None  # m/s of the lead vehicle, from the aux head
 
 
 class Agent:
@@ -139,7 +160,7 @@ class Agent:
         yaw_noise_deg: float = 0.0,
         command_noise_p: float = 0.0,
         seed: int = 0,
-        speed_control: bool = False,
+        speed_control: bool | str | None = False,
         yaw_noise_mode: str = "raw",
         command_noise_mode: str = "burst-start",
     ) -> None:
@@ -168,10 +189,11 @@ class Agent:
         if command_noise_p > 0 and not self.uses_command:
             raise ValueError(f"command noise perturbs the high-level command; {name} takes no command")
         self.post = post or PostProcess()
-        if speed_control and getattr(model, "aux_head", None) is None:
+        self.speed_mode = speed_control_mode(speed_control)
+        if self.speed_mode is not None and getattr(model, "aux_head", None) is None:
             raise ValueError(f"speed_control needs a model with an aux head (trained with --model-arg aux=true); "
                              f"{getattr(model, 'name', type(model).__name__)} has none")
-        self.speed_control: SpeedControl | None = SpeedControl() if speed_control else None
+        self.speed_control: SpeedControl | None = SpeedControl() if self.speed_mode is not None else None
         self.yaw_noise_deg = float(yaw_noise_deg)
         self.command_noise_p = float(command_noise_p)
         self.yaw_noise_mode = yaw_noise_mode
@@ -260,9 +282,14 @@ class Agent:
             out = x.forward(self.model)
         actions = out.actions[0].float().cpu().numpy()
         speed = float(self.norm.speed_inverse(out.speed[0, 0].float()).cpu())
-        target_speed = None
+        target_speed = lead_distance = lead_speed = None
         if out.aux is not None:
-            target_speed = max(0.0, float(self.norm.speed_inverse(out.aux[0, 0].float()).cpu()))
+            aux = out.aux[0].float().cpu()
+            target_speed = max(0.0, float(self.norm.speed_inverse(aux[0])))
+            lead_distance = max(0.0, float(aux[1]) * LEAD_RANGE)
+            lead_speed = max(0.0, float(self.norm.speed_inverse(aux[2])))
+            if self.speed_mode == "lead" and lead_distance < LEAD_SEEN:
+                target_speed = min(target_speed, hazard_speed(lead_distance, lead_speed, LEAD_DECEL))
         if self.speed_control is not None and target_speed is not None:
             throttle, brake = self.speed_control(target_speed, max(float(obs.speed), 0.0))
             actions = np.array([actions[0], throttle, brake], dtype=np.float32)
@@ -276,5 +303,7 @@ class Agent:
             command=command_idx,
             control=control,
             target_speed=target_speed,
+            lead_distance=lead_distance,
+            lead_speed=lead_speed,
         )
         return control

@@ -154,3 +154,40 @@ def test_bce_brake_loss_learns_the_mean_where_l1_learns_the_median() -> None:
         TrainConfig(brake_loss="hinge")
     with torch.autocast("cpu", dtype=torch.bfloat16):
         assert torch.isfinite(bce_of_probabilities(torch.tensor([0.0, 1.0]), torch.tensor([0.0, 1.0])))
+
+
+def test_aux_loss_option_sets_the_criterion_of_the_aux_regressions() -> None:
+    """`aux_loss="mse"`: a lead seen on 1 frame in 10 moves the head's optimum (the mean), under L1 it does not."""
+    from yawil.learn.loss import compute_loss
+    from yawil.learn.sampling import Batch
+
+    norm = Norm(speed_mean=2.0, speed_std=2.0, guidance_mean=[0.0] * K, guidance_std=[1.0] * K)
+    lead = torch.tensor([[4.0, 5.0, 0.0, 0.0]] + [[4.0, 50.0, 0.0, 0.0]] * 9)  # lead distance 5 m once, none 9 times
+
+    def best(criterion: str) -> float:
+        grid = torch.linspace(0.0, 1.0, 101)
+        costs = []
+        for d in grid:
+            pred = torch.tensor([[1.0, float(d), -1.0, -20.0]]).repeat(10, 1)
+            costs.append(float(aux_loss(pred, lead, norm, criterion)))
+        return float(grid[int(torch.tensor(costs).argmin())]) * 50.0
+
+    assert best("l1") == pytest.approx(50.0)  # the median: no lead, ever
+    assert best("mse") == pytest.approx(45.5, abs=0.6)  # the mean: the close lead pulls it
+    with pytest.raises(ValueError, match="aux_loss"):
+        TrainConfig(aux_loss="hinge")
+
+    class Head(torch.nn.Module):  # a model whose aux output is a fixed guess, to see which criterion the loss uses
+        def forward(self, image: torch.Tensor, speed: torch.Tensor, **_: object) -> object:
+            from yawil.models.base import ModelOutput
+
+            n = image.shape[0]
+            return ModelOutput(torch.zeros(n, 3), torch.zeros(n, 1), [], None, torch.full((n, 4), 0.5))
+
+    batch = Batch(image=torch.zeros(10, 3, 8, 8), speed=torch.zeros(10, 1), guidance=None, command=None,
+                  action=torch.zeros(10, 3), speed_raw=torch.zeros(10, 1), privileged=lead)
+    base = {"model": "yilratt", "aux_weight": 1.0}
+    l1 = float(compute_loss(Head(), batch, TrainConfig(**base), norm)[0])  # type: ignore[arg-type]
+    mse = float(compute_loss(Head(), batch, TrainConfig(**base, aux_loss="mse"), norm)[0])  # type: ignore[arg-type]
+    same_mse = float(compute_loss(Head(), batch, TrainConfig(**base, loss="mse"), norm)[0])  # type: ignore[arg-type]
+    assert mse != pytest.approx(l1) and mse == pytest.approx(same_mse)  # actions and speed are 0 = their targets

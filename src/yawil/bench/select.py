@@ -81,7 +81,7 @@ def candidate_label(path: Path) -> str:
 
 
 def select_checkpoint(checkpoints: Sequence[Path], out: Path, routes: int = 3, workers: int = 1,
-                      progress: bool = True, speed_control: bool = False) -> dict[str, Any]:
+                      progress: bool = True, speed_control: bool | str = False) -> dict[str, Any]:
     """Drive every candidate on the validation set (resumable per episode), write OUT/selection.json."""
     from yawil.bench.records import read_records
     from yawil.bench.runner import AgentSpec, run_benchmark
@@ -125,7 +125,8 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="results folder: one sub-folder per candidate, selection.json")
     p.add_argument("--routes", type=int, default=3, help=f"routes per task of {', '.join(VALIDATION_TASKS)} (default 3)")
     p.add_argument("--workers", type=int, default=1, help="processes driving episodes (default 1)")
-    p.add_argument("--speed-control", action="store_true", help="drive through the aux head's target speed")
+    p.add_argument("--speed-control", nargs="?", const="target", default=False, choices=("target", "lead"),
+                   help="as yawil bench --speed-control")
     p.add_argument("--link", default=None, help="also make this path a hard link of the selected checkpoint")
     p.add_argument("--no-progress", action="store_true")
     return p

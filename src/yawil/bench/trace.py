@@ -26,8 +26,9 @@ from yawil.bench.runner import AgentSpec
 from yawil.bench.suites import Episode, episodes
 from yawil.fileio import write_atomic
 
-COLUMNS = ("time", "speed", "steer", "throttle", "brake", "agent_target_speed", "expert_steer", "expert_throttle",
-           "expert_brake", "expert_target_speed", "expert_reason", "lead_stop_m", "lead_speed")
+COLUMNS = ("time", "speed", "steer", "throttle", "brake", "agent_target_speed", "agent_lead_stop_m", "agent_lead_speed",
+           "expert_steer", "expert_throttle", "expert_brake", "expert_target_speed", "expert_reason", "lead_stop_m",
+           "lead_speed")
 
 
 @dataclass(frozen=True)
@@ -77,10 +78,13 @@ def trace_episode(ep: Episode, spec: AgentSpec, out: str | os.PathLike[str], exp
             leads = [h for h in st.hazards if h.reason == "vehicle"]
             lead = min(leads, key=lambda h: h.distance) if leads else None
             control = agent.act(obs)
-            target = getattr(getattr(agent, "last", None), "target_speed", None)
+            last = getattr(agent, "last", None)
+            target, a_lead, a_lead_v = (getattr(last, k, None) for k in ("target_speed", "lead_distance", "lead_speed"))
             rows.append([
                 round(obs.time, 2), round(obs.speed, 3), round(control.steer, 4), round(control.throttle, 4),
-                round(control.brake, 4), "" if target is None else round(target, 3), round(shadow.steer, 4),
+                round(control.brake, 4), "" if target is None else round(target, 3),
+                "" if a_lead is None else round(a_lead, 2), "" if a_lead_v is None else round(a_lead_v, 2),
+                round(shadow.steer, 4),
                 round(shadow.throttle, 4), round(shadow.brake, 4), round(st.target_speed, 3), st.reason,
                 "" if lead is None else round(lead.distance, 2), "" if lead is None else round(lead.speed, 2),
             ])
@@ -106,7 +110,8 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--agent", required=True, help="a checkpoint (or 'expert': the expert shadowing itself)")
     p.add_argument("--out", required=True, help="the CSV file to write")
     p.add_argument("--suite", default="all", help="the suite the episode belongs to (default all)")
-    p.add_argument("--speed-control", action="store_true", help="as yawil bench --speed-control")
+    p.add_argument("--speed-control", nargs="?", const="target", default=False, choices=("target", "lead"),
+                   help="as yawil bench --speed-control")
     p.add_argument("--expert-arg", action="append", default=[], metavar="KEY=VALUE",
                    help="a setting of the shadowing expert's ExpertConfig (and of the agent, with --agent expert)")
     p.add_argument("--tail", type=int, default=0, help="also print the last N rows")

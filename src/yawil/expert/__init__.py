@@ -9,7 +9,7 @@ The names used elsewhere are importable from here: `from yawil.expert import Exp
 """
 
 from yawil.expert.config import ExpertConfig
-from yawil.expert.driver import Expert, ExpertState, expert_info
+from yawil.expert.driver import Expert, ExpertState, expert_info, hazard_speed
 from yawil.expert.hazards import Hazard
 
-__all__ = ["Expert", "ExpertConfig", "ExpertState", "Hazard", "expert_info"]
+__all__ = ["Expert", "ExpertConfig", "ExpertState", "Hazard", "expert_info", "hazard_speed"]

@@ -134,13 +134,7 @@ class Expert(HazardScan):
         return best, reason, binding
 
     def _hazard_speed(self, h: Hazard) -> float:
-        """Speed allowed now so as to stop at (or, behind a moving lead, settle at) the hazard's point."""
-        a = self.config.comfort_decel
-        if h.speed > 0.0:  # following a moving lead: settle at its speed at the following distance
-            if h.distance > 0.0:
-                return min(math.sqrt(h.speed**2 + 2.0 * a * h.distance), h.speed + 0.5 * h.distance)
-            return max(0.0, h.speed + 0.5 * h.distance)
-        return math.sqrt(2.0 * a * h.distance) if h.distance > 0.0 else 0.0
+        return hazard_speed(h.distance, h.speed, self.config.comfort_decel)
 
     def _longitudinal(self, speed: float, v_target: float, binding: Hazard | None) -> tuple[float, float, bool]:
         """(throttle, brake, whether the binding hazard forced the brake beyond the PID's demand)."""
@@ -173,6 +167,16 @@ class Expert(HazardScan):
         if brake > 0.0:
             throttle = 0.0
         return throttle, brake, forced
+
+
+def hazard_speed(distance: float, speed: float, decel: float) -> float:
+    """Speed allowed now so as to stop at (or, behind a moving lead at `speed`, settle at) a point `distance`
+    metres ahead, braking at `decel`. The expert's rule, also the learned agent's under `speed_control="lead"`."""
+    if speed > 0.0:  # following a moving lead: settle at its speed at the following distance
+        if distance > 0.0:
+            return min(math.sqrt(speed**2 + 2.0 * decel * distance), speed + 0.5 * distance)
+        return max(0.0, speed + 0.5 * distance)
+    return math.sqrt(2.0 * decel * distance) if distance > 0.0 else 0.0
 
 
 def expert_info(expert: Expert) -> dict[str, Any]:

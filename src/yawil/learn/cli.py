@@ -44,6 +44,8 @@ _OPTIONS: tuple[tuple[str, str, Any, str], ...] = (
      "probability per training sample that the speed input is replaced by its mean (inertia; default 0)"),
     ("--aux-weight", "aux_weight", float,
      "weight of the aux loss on the expert's privileged labels (needs --model-arg aux=true; default 0)"),
+    ("--aux-loss", "aux_loss", str,
+     "same (default: --loss) | l1 | mse | smooth_l1: criterion of the aux head's regression terms"),
     ("--brake-loss", "brake_loss", str,
      "same (default: the brake under --loss) | bce (binary cross-entropy of the brake output)"),
     ("--init-from", "init_from", str, "start from the weights and normalisation of this yawil checkpoint (fine-tune)"),

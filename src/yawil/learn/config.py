@@ -68,6 +68,10 @@ class TrainConfig:
     speed_dropout: float = 0.0
     # Weight of the aux heads' loss on the expert's privileged labels (a model built with aux=true); 0: off.
     aux_weight: float = 0.0
+    # Criterion of the aux head's regression terms (target speed, lead distance, lead speed): "same" as `loss`,
+    # or one of LOSSES. Why "mse": under L1 a head predicts the median, and the frames that matter (a lead
+    # vehicle close ahead: 4 % of them) never move the median; the mean they do (docs/experiments.md).
+    aux_loss: str = "same"
     # "same": the brake is one of the three action components under `loss`; "bce": binary cross-entropy of
     # the (sigmoid) brake output against the expert's brake. L1's optimum is the conditional median, which
     # for a brake pressed on ~7 % of the frames is 0 wherever the image leaves doubt; BCE's is the mean.
@@ -109,6 +113,7 @@ class TrainConfig:
              "a number in [0, 1) (0: no validation, best.pt is the last checkpoint)")
         need(self.loss in LOSSES, "loss", f"one of {LOSSES}")
         need(self.brake_loss in BRAKE_LOSSES, "brake_loss", f"one of {BRAKE_LOSSES}")
+        need(self.aux_loss == "same" or self.aux_loss in LOSSES, "aux_loss", f"'same' or one of {LOSSES}")
         need(self.device in DEVICES, "device", f"one of {DEVICES}")
         need(self.precision in PRECISIONS, "precision", f"one of {PRECISIONS}")
         need(self.channels_last in SWITCHES, "channels_last", f"one of {SWITCHES}")

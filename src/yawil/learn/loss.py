@@ -48,7 +48,8 @@ def compute_loss(
             raise ValueError(f"aux_weight={cfg.aux_weight} but model {cfg.model} has no aux head (--model-arg aux=true)")
         if batch.privileged is None or norm is None:
             raise ValueError("aux_weight > 0 needs the privileged labels of the samples (schema-2 data) and the norm")
-        loss = loss + cfg.aux_weight * aux_loss(out.aux.float(), batch.privileged, norm, cfg.loss)
+        aux_criterion = cfg.loss if cfg.aux_loss == "same" else cfg.aux_loss
+        loss = loss + cfg.aux_weight * aux_loss(out.aux.float(), batch.privileged, norm, aux_criterion)
     return loss, pred, out
 
 

@@ -2,7 +2,7 @@
 
 Every module belongs to a layer, and the layers follow the data flow, lowest first:
 
-     0 base       yawil (the package: version, Gymnasium registration), fileio, locking, stages, video
+     0 base       yawil (the package: version, Gymnasium registration), executor, fileio, locking, stages, video
      1 sim        yawil.sim (both worlds, types, the episode judge and criteria, the CARLA backend)
      2 guidance   yawil.guidance (a route -> a guidance vector)
      3 expert     yawil.expert
@@ -45,7 +45,7 @@ SRC = Path(__file__).resolve().parent.parent / "src"
 
 # (layer name, module prefixes), lowest first. A module belongs to the layer of its longest matching prefix.
 LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
-    ("base", ("yawil", "yawil.fileio", "yawil.locking", "yawil.stages", "yawil.video")),
+    ("base", ("yawil", "yawil.executor", "yawil.fileio", "yawil.locking", "yawil.provenance", "yawil.stages", "yawil.video")),
     ("sim", ("yawil.sim",)),
     ("guidance", ("yawil.guidance",)),
     ("expert", ("yawil.expert",)),

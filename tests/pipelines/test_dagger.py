@@ -153,6 +153,22 @@ def test_dagger_config_is_checked() -> None:
         DaggerConfig(expert_args={"softly": 1.0})
 
 
+def test_a_resume_may_change_the_executor_and_nothing_else(tmp_path: Path) -> None:
+    """The run records where its episodes ran; another executor on resume changes no result, so it is allowed
+    (and recorded), while a changed setting still is not."""
+    from dataclasses import replace
+
+    cfg = DaggerConfig(expert_frames=30, workers=2)
+    DaggerRun(tmp_path, cfg).check_config()
+    assert json.loads((tmp_path / "dagger.json").read_text())["executor"] == "local"
+    DaggerRun(tmp_path, replace(cfg, executor="ray", ray_address="auto")).check_config()
+    assert json.loads((tmp_path / "dagger.json").read_text())["ray_address"] == "auto"
+    with pytest.raises(ValueError, match="workers: 2 -> 3"):
+        DaggerRun(tmp_path, replace(cfg, workers=3)).check_config()
+    with pytest.raises(ValueError, match="--executor 'dask'"):
+        DaggerConfig(executor="dask")
+
+
 def test_the_dagger_learner_drives_as_benched(tiny_checkpoint: Any) -> None:
     """With speed_control the learner's throttle and brake come from its aux head's target speed."""
     from yawil.pipelines.dagger import load_learner
@@ -230,6 +246,7 @@ def test_dagger_cli_refuses_bad_options_in_one_line(tmp_path: Path, capsys: pyte
         (["--train-arg", "speed_dropout=2"], "speed_dropout"),
         (["--round0", str(tmp_path / "none.pt")], "round0"),
         (["--expert-arg", "comfort_decel=soft"], "--expert-arg"),
+        (["--ray-address", "auto"], "--ray-address 'auto' applies to --executor ray only"),
     ):
         with pytest.raises(SystemExit) as err:
             main(["dagger", "--out", str(tmp_path / "o"), *argv])

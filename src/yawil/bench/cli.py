@@ -93,6 +93,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--agent", default="expert", help="'expert' or a checkpoint path (default expert)")
     p.add_argument("--seeds", type=int, default=None, help="seeds per episode (default: protocol, 5 static / 3 dynamic)")
     p.add_argument("--workers", type=int, default=1, help="processes driving episodes in parallel (default 1)")
+    from yawil.executor import add_executor_arguments
+
+    add_executor_arguments(p)
     p.add_argument("--out", default=None, help="results folder (default results/<agent name>)")
     p.add_argument("--label", default=None, help="column name in reports (default: the folder name)")
     p.add_argument("--tasks", default=None, help="comma-separated subset of the suite's tasks")
@@ -116,18 +119,21 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--command-noise", default="burst-start", choices=("burst-start", "frame-share"),
                    help="reading of --command-noise-p: burst-start (default) a 5-frame burst starts with p on each "
                         "quiet frame; frame-share: a share p of all frames is wrong, in 5-frame bursts")
-    p.add_argument("--speed-control", action="store_true",
-                   help="learned agents with an aux head: throttle and brake from its predicted target speed")
+    p.add_argument("--speed-control", nargs="?", const="target", default=False, choices=("target", "lead"),
+                   help="learned agents with an aux head: throttle and brake from its predicted target speed "
+                        "(target, the default of the bare flag), or that speed capped by the expert's braking rule on "
+                        "its predicted lead vehicle (lead); docs/training.md")
     p.add_argument("--expert-arg", action="append", default=[], metavar="KEY=VALUE",
                    help="--agent expert: a setting of its ExpertConfig (docs/expert.md), e.g. comfort_decel=1.5; "
                         "repeat for more")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument("--backend", default="embedded", choices=("embedded", "carla"), help="simulator (default embedded)")
-    p.add_argument("--host", default="localhost", help="--backend carla: server host (default localhost)")
-    p.add_argument("--port", type=int, default=2000, help="--backend carla: server port (default 2000)")
-    p.add_argument("--timeout", type=float, default=10.0,
-                   help="--backend carla: seconds a client call may take before it counts as a simulator error "
-                        "(default 10; map loads get at least 60)")
+    from yawil.sim.carla.connection import add_connection_arguments
+
+    add_connection_arguments(p, note="map loads get at least 60")
+    from yawil.sim.carla.servers import add_servers_argument
+
+    add_servers_argument(p)
     _add_route_options(p, None)
     return p
 
@@ -186,14 +192,24 @@ def _run_suite(args: argparse.Namespace) -> int:
     apply_preset(args)
     from yawil.bench.runner import AgentSpec, run_benchmark
     from yawil.bench.suites import episodes
+    from yawil.executor import executor_from_args
+    from yawil.sim.carla.servers import server_worlds, servers_for
 
+    executor = executor_from_args(args)
+    servers = servers_for(args.carla_servers, args.workers, args.backend)
     spec = AgentSpec(args.agent, args.yaw_noise_deg, args.command_noise_p, args.speed_control,
                      args.yaw_noise, args.command_noise, tuple(args.expert_arg)).validate()
-    factory = None
+    factory: Any = None
     if args.backend != "embedded":
-        if args.workers != 1:
-            raise ValueError(f"--backend {args.backend} drives one server: use --workers 1 (got {args.workers})")
+        if args.workers != 1 and servers is None:
+            raise ValueError(f"--backend {args.backend} with --workers {args.workers}: give one server per worker "
+                             "with --carla-servers HOST:PORT,...")
+        if servers is not None:  # the route files are checked on the first server, the same CARLA as the others
+            args.host, args.port = servers[0]
         eps, factory, world = _carla_episodes(args)
+        if servers is not None:  # each worker connects to its own server; this connection must not hold one
+            world.close()
+            world, factory = None, server_worlds(servers, args.timeout)
     else:
         world = None
         eps = episodes(
@@ -219,6 +235,7 @@ def _run_suite(args: argparse.Namespace) -> int:
             progress=not args.no_progress,
             label=args.label,
             world_factory=factory,
+            executor=executor,
         )
     finally:
         if world is not None:
@@ -241,6 +258,7 @@ def _carla_episodes(args: argparse.Namespace) -> tuple[list[Any], Callable[[], A
     from yawil.bench.carla_routes.connect import prepare_route_file
     from yawil.bench.suites import SUITE_CONDITIONS, episodes, get_condition, get_suite
     from yawil.sim import make_world
+    from yawil.sim.carla.connection import connection_from_args
     from yawil.sim.carla.errors import CarlaSetupError
     from yawil.sim.carla.world import carla_town
 
@@ -254,7 +272,7 @@ def _carla_episodes(args: argparse.Namespace) -> tuple[list[Any], Callable[[], A
             towns.append(town)
     routes_dir = Path(args.routes_dir) if args.routes_dir else None
     try:
-        world = make_world("carla", host=args.host, port=args.port, timeout=args.timeout)
+        world = make_world("carla", **connection_from_args(args).kwargs())
     except CarlaSetupError as err:
         raise ValueError(str(err)) from None
     try:
@@ -279,6 +297,6 @@ def _carla_episodes(args: argparse.Namespace) -> tuple[list[Any], Callable[[], A
     first = [world]
 
     def factory() -> Any:
-        return first.pop() if first else make_world("carla", host=args.host, port=args.port, timeout=args.timeout)
+        return first.pop() if first else make_world("carla", **connection_from_args(args).kwargs())
 
     return eps, factory, world

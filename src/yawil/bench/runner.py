@@ -1,7 +1,7 @@
 """Runs benchmark episodes and appends one JSON line per finished episode to the results folder.
 
-- One world and one agent per process; `workers > 1` runs episodes in spawned processes while the main
-  process alone writes the file (so lines never interleave).
+- One world and one agent per worker; `workers > 1` (or Ray) runs episodes on workers (yawil.executor: spawned
+  processes or Ray actors) while the calling process alone writes the file (so lines never interleave).
 - Resume: episodes whose key is already in the file are skipped; see `yawil.bench.records`.
 - The camera is on for learned agents and off for the expert (it drives from privileged state and needs no
   pixels); `camera=True` forces it (e.g. to record videos of the expert).
@@ -15,15 +15,14 @@ import os
 import sys
 import time
 from collections.abc import Callable, Mapping, Sequence
-from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field
-from multiprocessing import get_context
 from pathlib import Path
 from typing import Any, Protocol
 
 from yawil.bench.metrics import EpisodeTracker, subsample_route
 from yawil.bench.records import PROTOCOL, EpisodeLog, check_run_info, episode_key
 from yawil.bench.suites import Episode
+from yawil.executor import ExecutorConfig, for_worker, open_executor
 from yawil.locking import folder_lock
 from yawil.sim.types import Control, Observation, World
 
@@ -43,7 +42,7 @@ class AgentSpec:
     agent: str
     yaw_noise_deg: float = 0.0
     command_noise_p: float = 0.0
-    speed_control: bool = False  # drive throttle and brake from the aux head's target speed (Agent's option)
+    speed_control: bool | str = False  # throttle and brake from the aux head: True/"target" or "lead" (yawil.agent)
     yaw_noise_mode: str = "raw"  # readings of the two noises (yawil.guidance.YAW_NOISE_MODES, COMMAND_NOISE_MODES)
     command_noise_mode: str = "burst-start"
     expert_args: tuple[str, ...] = ()  # KEY=VALUE settings of the expert's ExpertConfig (`--expert-arg`)
@@ -58,8 +57,8 @@ class AgentSpec:
             opts["yaw_noise_mode"] = self.yaw_noise_mode
         if self.command_noise_p:
             opts["command_noise_mode"] = self.command_noise_mode
-        if self.speed_control:  # only when set, so the records of earlier runs still match
-            opts["speed_control"] = True
+        if self.speed_control:  # only when set, so the records of earlier runs still match ("target" stays True)
+            opts["speed_control"] = True if self.speed_control in (True, "target") else self.speed_control
         if self.expert_args:  # the settings that differ from the default expert, by name
             from yawil.expert import ExpertConfig
 
@@ -71,6 +70,8 @@ class AgentSpec:
             raise ValueError(f"--agent {self.agent!r}: expected 'expert' or the path of a checkpoint file")
         if self.is_expert and (self.yaw_noise_deg or self.command_noise_p or self.speed_control):
             raise ValueError("noise and speed-control options apply to learned agents, not to the expert")
+        if self.speed_control not in (False, True, "target", "lead"):
+            raise ValueError(f"--speed-control {self.speed_control!r}: expected target or lead")
         if self.expert_args and not self.is_expert:
             raise ValueError("--expert-arg applies to --agent expert only")
         if self.expert_args:
@@ -292,24 +293,42 @@ class _Recorder:
         return str(write_video(self.frames, stem.with_suffix(".mp4"), fps=10))
 
 
-# ----- process pool ----------------------------------------------------------------------------------------
-
-_DRIVER: EpisodeDriver | None = None
-
-
-def _init_worker(spec: AgentSpec, camera: bool, record_dir: str | None, threads: int) -> None:
-    global _DRIVER
-    if not spec.is_expert:
-        import torch
-
-        torch.set_num_threads(threads)
-    _DRIVER = EpisodeDriver(spec, camera, Path(record_dir) if record_dir else None)
+# ----- workers ---------------------------------------------------------------------------------------------
+WorldFactories = Callable[[], World] | Sequence[Callable[[], World]]
 
 
-def _run_in_worker(ep: Episode) -> dict[str, Any]:
-    if _DRIVER is None:
-        raise RuntimeError("worker not initialised")
-    return _DRIVER.run(ep)
+@dataclass(frozen=True)
+class DriverFactory:
+    """Makes each worker's EpisodeDriver (picklable, for spawned processes and Ray actors): its world is the
+    rank-th of `world_factory` when there is one per worker (CARLA servers); `threads` torch threads for a
+    learned agent (0: leave torch's default, in the calling process)."""
+
+    spec: AgentSpec
+    camera: bool
+    record_dir: str | None = None
+    threads: int = 0
+    world_factory: WorldFactories | None = None
+    agent_factory: Callable[[int], DrivingAgent] | None = None
+
+    def __call__(self, rank: int, report: Callable[[Any], None]) -> EpisodeDriver:
+        if self.threads and not self.spec.is_expert:
+            import torch
+
+            torch.set_num_threads(self.threads)
+        world = for_worker(self.world_factory, rank) if self.world_factory is not None else None
+        return EpisodeDriver(self.spec, self.camera, Path(self.record_dir) if self.record_dir else None, world,
+                             self.agent_factory)
+
+
+def _check_picklable(*factories: Any) -> None:
+    """Spawned processes get the factories pickled: say so in one line, before any episode, when they cannot."""
+    import pickle
+
+    try:
+        pickle.dumps(factories)
+    except (pickle.PicklingError, AttributeError, TypeError) as err:
+        raise ValueError(f"a custom world_factory or agent_factory on several local workers must be picklable "
+                         f"(a module-level function or a partial of one): {err}") from None
 
 
 @dataclass
@@ -331,21 +350,27 @@ def run_benchmark(
     record: bool = False,
     progress: bool = True,
     label: str | None = None,
-    world_factory: Callable[[], World] | None = None,
+    world_factory: WorldFactories | None = None,
     agent_factory: Callable[[int], DrivingAgent] | None = None,
     on_record: Callable[[Mapping[str, Any]], None] | None = None,
+    executor: ExecutorConfig = ExecutorConfig(),
 ) -> RunSummary:
     """Drive every episode not yet in `out`, appending each record as soon as it is done.
 
     `world_factory` and `agent_factory` (seed -> agent) replace the embedded world and the agent that
-    `spec` names (any object with reset() and act(obs)); they run in-process only.
+    `spec` names (any object with reset() and act(obs)); `world_factory` may be a list, one per worker (CARLA
+    servers). On more than one local worker they must be picklable (module-level, or partials of such).
+    `executor` says where the workers run (yawil.executor); the records are the same either way.
     """
+    executor.check()
     if agent_factory is None:
         spec.validate()
     if workers < 1:
         raise ValueError(f"--workers must be >= 1, got {workers}")
-    if (world_factory is not None or agent_factory is not None) and workers > 1:
-        raise ValueError("a custom world_factory or agent_factory runs in-process only (workers=1)")
+    if isinstance(world_factory, (list, tuple)) and len(world_factory) != workers:
+        raise ValueError(f"{len(world_factory)} world factories for {workers} workers: give one per worker")
+    if executor.kind == "local" and workers > 1:
+        _check_picklable(world_factory, agent_factory)
     use_camera = (not spec.is_expert) if camera is None else camera
     out = Path(out)
     record_dir = out / "videos" if record else None
@@ -375,36 +400,19 @@ def run_benchmark(
             if on_record is not None:
                 on_record(rec)
 
+        n = max(1, min(workers, len(todo)))
+        inline = executor.kind == "local" and n == 1
+        factory = DriverFactory(spec, use_camera, str(record_dir) if record_dir else None,
+                                0 if inline else max(1, (os.cpu_count() or 2) // workers), world_factory, agent_factory)
         try:
-            if workers == 1 or len(todo) <= 1:
-                driver = EpisodeDriver(spec, use_camera, record_dir, world_factory, agent_factory)
-                try:
-                    for ep in todo:
-                        finish(driver.run(ep))
-                finally:
-                    driver.close()
-            else:
-                threads = max(1, (os.cpu_count() or 2) // workers)
-                with ProcessPoolExecutor(
-                    max_workers=workers,
-                    mp_context=get_context("spawn"),
-                    initializer=_init_worker,
-                    initargs=(spec, use_camera, str(record_dir) if record_dir else None, threads),
-                ) as pool:
-                    pending: set[Future[dict[str, Any]]] = set()
-                    queue = list(reversed(todo))
-                    try:
-                        # Keep at most 2 episodes per worker in flight so a kill loses little work.
-                        while queue or pending:
-                            while queue and len(pending) < 2 * workers:
-                                pending.add(pool.submit(_run_in_worker, queue.pop()))
-                            finished, pending = wait(pending, return_when=FIRST_COMPLETED)
-                            for fut in finished:
-                                finish(fut.result())
-                    except BaseException:
-                        for fut in pending:
-                            fut.cancel()
-                        raise
+            with open_executor(executor, n, factory) as pool:
+                queue = list(reversed(todo))
+                while queue or len(pool):
+                    while queue and len(pool) < 2 * n:  # at most 2 episodes per worker queued: a kill loses little
+                        ep = queue.pop()
+                        pool.submit(ep.key, ep)
+                    for _, rec in pool.results():
+                        finish(rec)
         finally:
             bar.close()
     return RunSummary(

@@ -1,5 +1,6 @@
-"""Data collection: episodes (yawil.data.episode) run in one process or a pool of them, each process with its
-own world and writer, until the dataset holds the frame or episode budget.
+"""Data collection: episodes (yawil.data.episode) run in this process or on workers (yawil.executor: local
+processes, each with its own world committing to the dataset, or Ray actors shipping each finished episode file
+back to this process, which stores it), until the dataset holds the frame or episode budget.
 
 A second run of the same command resumes: episodes already in the manifest are skipped, never duplicated,
 and damaged episode files are collected again. Rules and options: docs/expert.md.
@@ -8,7 +9,6 @@ and damaged episode files are collected again. Rules and options: docs/expert.md
 from __future__ import annotations
 
 import os
-import queue
 import sys
 import time
 from collections.abc import Callable, Iterator, Sequence
@@ -18,7 +18,7 @@ from typing import Any
 
 import numpy as np
 
-from yawil.data.collect_config import COLLISION_POLICIES, CollectConfig, OnPolicy
+from yawil.data.collect_config import COLLISION_POLICIES, DEFAULT_FRAMES, CollectConfig, OnPolicy
 from yawil.data.episode import (
     EPISODE_STRIDE,
     Driver,
@@ -30,8 +30,9 @@ from yawil.data.episode import (
     plan_episode,
     run_episode,
 )
-from yawil.data.manifest import read_manifest
+from yawil.data.manifest import EpisodeEntry, read_manifest
 from yawil.data.writer import DatasetWriter
+from yawil.executor import Executor, ExecutorConfig, Report, for_worker, open_executor
 from yawil.expert import ExpertConfig
 from yawil.guidance import GuidanceConfig
 from yawil.sim.types import Route, World
@@ -82,10 +83,6 @@ def embedded_world() -> World:
     return world
 
 
-# per-process state of a worker
-_WORKER: dict[str, Any] = {}
-
-
 @dataclass(frozen=True)
 class Learner:
     """What an on-policy collection needs beyond the expert's: who shares the wheel, and how.
@@ -102,39 +99,87 @@ class Learner:
     reject_route: Callable[[Route], bool] | None = None
 
 
-def _worker_init(out: str, cfg: CollectConfig, guidance: GuidanceConfig, expert_config: ExpertConfig,
-                 progress: Any, world_factory: WorldFactory, learner: Learner | None = None) -> None:
-    _WORKER.update(cfg=cfg, guidance=guidance, expert=expert_config, progress=progress, learner_spec=learner,
-                   writer=DatasetWriter(out, dataset_config(cfg, guidance, expert_config, learner)),
-                   world=world_factory(), learner=learner.factory() if learner is not None else None)
+# ------------------------------------------------------------------------------------------------ workers
+@dataclass(frozen=True)
+class ShippedEpisode:
+    """A finished episode file on its way from a worker that cannot write the dataset (a Ray actor, maybe on
+    another machine) to the one process that does: the file's bytes and its manifest entry (None: discarded)."""
+
+    result: EpisodeResult
+    entry: EpisodeEntry | None
+    data: bytes = b""
 
 
-def _worker_episode(seed: int, index: int) -> EpisodeResult:
-    w = _WORKER
-    spec: Learner | None = w["learner_spec"]
-    plan = plan_episode(w["cfg"], seed, index, spec.min_world_seed if spec is not None else 0)
-    if w["writer"].has_episode(plan.episode_id):
-        return EpisodeResult(plan.episode_id, index, "skipped")
-    pending = [0]
+@dataclass(frozen=True)
+class EpisodeWork:
+    """Makes each worker of a collection (picklable, for spawned processes and Ray actors): its world (the
+    rank-th factory when there is one per worker), its learner, and where its episodes go: `out`, the dataset
+    each local worker commits to itself, or None to ship each finished file back (`ShippedEpisode`)."""
 
-    def tick(n: int) -> None:
-        pending[0] += n
-        if pending[0] >= 50:
-            w["progress"].put((plan.episode_id, pending[0]))
-            pending[0] = 0
+    out: str | None
+    cfg: CollectConfig
+    guidance: GuidanceConfig
+    expert: ExpertConfig
+    seed: int
+    world_factory: WorldFactory | Sequence[WorldFactory] = embedded_world
+    learner: Learner | None = None
 
-    result = run_episode(w["world"], plan, w["cfg"], w["writer"], w["guidance"], w["expert"], on_frame=tick,
-                         **_learner_args(spec, w["learner"]))
-    if pending[0]:
-        w["progress"].put((plan.episode_id, pending[0]))
-    return result
+    def __call__(self, rank: int, report: Report) -> CollectWorker:
+        return CollectWorker(self, rank, report)
+
+
+class CollectWorker:
+    """One process's world and learner, kept for all its episodes; a task is an episode index."""
+
+    def __init__(self, work: EpisodeWork, rank: int, report: Report) -> None:
+        self.work, self.report = work, report
+        self.config = dataset_config(work.cfg, work.guidance, work.expert, work.learner)
+        self.writer = DatasetWriter(work.out, self.config) if work.out is not None else None
+        self.world = for_worker(work.world_factory, rank)()
+        self.driver = work.learner.factory() if work.learner is not None else None
+
+    def run(self, index: int) -> EpisodeResult | ShippedEpisode:
+        w = self.work
+        plan = plan_episode(w.cfg, w.seed, index, w.learner.min_world_seed if w.learner is not None else 0)
+        if self.writer is not None:
+            if self.writer.has_episode(plan.episode_id):  # committed meanwhile by another process
+                return EpisodeResult(plan.episode_id, index, "skipped")
+            return self._drive(plan, self.writer)
+        import tempfile
+
+        # the usual writer, in a dataset of its own that lives as long as the episode (a kill leaves one
+        # partial episode file in the node's temporary folder)
+        with tempfile.TemporaryDirectory(prefix="yawil-episode-") as scratch:
+            result = self._drive(plan, DatasetWriter(scratch, self.config))
+            m = read_manifest(scratch)
+            if not m.episodes:
+                return ShippedEpisode(result, None)
+            return ShippedEpisode(result, m.episodes[0], m.path_of(m.episodes[0]).read_bytes())
+
+    def _drive(self, plan: EpisodePlan, writer: DatasetWriter) -> EpisodeResult:
+        w, pending = self.work, [0]
+
+        def tick(n: int) -> None:  # progress in batches: a queue message per frame would cost more than the frame
+            pending[0] += n
+            if pending[0] >= 50:
+                self.report((plan.episode_id, pending[0]))
+                pending[0] = 0
+
+        result = run_episode(self.world, plan, w.cfg, writer, w.guidance, w.expert, on_frame=tick,
+                             **_learner_args(w.learner, self.driver))
+        if pending[0]:
+            self.report((plan.episode_id, pending[0]))
+        return result
+
+    def close(self) -> None:
+        self.world.close()
 
 
 def collect(
     out: str | os.PathLike[str],
     town: str = "town01",
     weathers: Sequence[str] | str = "train",
-    frames: int | None = 200_000,
+    frames: int | None = DEFAULT_FRAMES,
     workers: int = 1,
     seed: int = 0,
     episodes: int | None = None,
@@ -142,37 +187,43 @@ def collect(
     guidance: GuidanceConfig | None = None,
     expert_config: ExpertConfig | None = None,
     progress: bool = True,
-    world_factory: WorldFactory = embedded_world,
+    world_factory: WorldFactory | Sequence[WorldFactory] = embedded_world,
     learner: Learner | None = None,
     desc: str = "collect",
     verify: bool = False,
+    executor: ExecutorConfig = ExecutorConfig(),
     **overrides: Any,
 ) -> CollectSummary:
     """Collect expert episodes into the dataset at `out` until it holds `frames` frames (or `episodes` done).
 
     `weathers` is a set name ("train", "test", "all") or names. `config` fields can also be given as keyword
     overrides (e.g. vehicles=(30, 30)). Resumable: run it again and it continues where it stopped.
-    `world_factory` makes each process's simulator; with workers > 1 it must be picklable (a module-level
-    function), as spawned processes import it. `learner` makes it an on-policy (DAgger) collection.
+    `world_factory` makes each worker's simulator (a list: one factory per worker, as one CARLA server each);
+    with workers > 1 or Ray it must be picklable (a module-level function, a partial of one). `learner` makes
+    it an on-policy (DAgger) collection. `executor` says where the workers run (yawil.executor): the dataset
+    is the same whichever it is and however many workers.
     One process at a time writes a dataset (yawil.locking). On resume, episode files that are missing,
     truncated or unreadable are dropped and collected again (`verify`: decode every image too).
     """
     from yawil.locking import folder_lock
 
+    executor.check()
+    if isinstance(world_factory, (list, tuple)) and len(world_factory) != workers:
+        raise ValueError(f"{len(world_factory)} world factories for {workers} workers: give one per worker")
     if world_factory is embedded_world:  # a typo'd town must not leave a dataset behind that blocks the rerun
         from yawil.sim.town.map.layout import resolve_town
 
         resolve_town(town)
     with folder_lock(out, "dataset"):
         return _collect(out, town, weathers, frames, workers, seed, episodes, config, guidance, expert_config,
-                        progress, world_factory, learner, desc, verify, **overrides)
+                        progress, world_factory, learner, desc, verify, executor, **overrides)
 
 
 def _collect(
     out: str | os.PathLike[str], town: str, weathers: Sequence[str] | str, frames: int | None, workers: int,
     seed: int, episodes: int | None, config: CollectConfig | None, guidance: GuidanceConfig | None,
-    expert_config: ExpertConfig | None, progress: bool, world_factory: WorldFactory, learner: Learner | None,
-    desc: str, verify: bool, **overrides: Any,
+    expert_config: ExpertConfig | None, progress: bool, world_factory: WorldFactory | Sequence[WorldFactory],
+    learner: Learner | None, desc: str, verify: bool, executor: ExecutorConfig, **overrides: Any,
 ) -> CollectSummary:
     from yawil.sim.weather import weather_set
 
@@ -225,26 +276,11 @@ def _collect(
             summary.dataset_frames += r.frames_kept
 
     bar = _Progress(frames, summary.dataset_frames, desc) if progress else None
-    indices = todo()
+    # local workers commit to the dataset themselves (as they always did); Ray workers ship their files here
+    work = EpisodeWork(out if executor.kind == "local" else None, cfg, gcfg, ecfg, seed, world_factory, learner)
     try:
-        if workers == 1:
-            world = world_factory()
-            driver = learner.factory() if learner is not None else None
-            try:
-                for i in indices:
-                    if not budget_left(0, 0.0):
-                        break
-                    plan = plan_episode(cfg, seed, i, learner.min_world_seed if learner is not None else 0)
-                    tick = None if bar is None else (lambda n, ep=plan.episode_id: bar.frame(ep, n))
-                    r = run_episode(world, plan, cfg, writer, gcfg, ecfg, on_frame=tick, **_learner_args(learner, driver))
-                    account(r)
-                    if bar is not None:
-                        bar.episode(r, summary)
-            finally:
-                world.close()
-        else:
-            _run_pool(out, cfg, gcfg, ecfg, seed, workers, indices, budget_left, account, bar, summary, world_factory,
-                      learner)
+        with open_executor(executor, workers, work, None if bar is None else (lambda item: bar.frame(*item))) as pool:
+            _run(pool, todo(), budget_left, lambda r: _finish(r, writer, account, bar, summary))
     finally:
         if bar is not None:
             bar.close()
@@ -253,56 +289,40 @@ def _collect(
     return summary
 
 
-def _run_pool(out: str, cfg: CollectConfig, gcfg: GuidanceConfig, ecfg: ExpertConfig, seed: int, workers: int,
-              indices: Iterator[int], budget_left: Callable[[int, float], bool], account: Callable[[EpisodeResult], None],
-              bar: _Progress | None, summary: CollectSummary, world_factory: WorldFactory,
-              learner: Learner | None = None) -> None:
-    """N spawn-context processes, each with its own world and writer; at most N episodes in flight.
-
-    Any exception (a worker's, or Ctrl-C) terminates the workers at once: their episodes in progress are
-    lost (their temporary files are removed by the next writer on this dataset), committed ones are kept.
-    """
-    import multiprocessing as mp
-
-    ctx = mp.get_context("spawn")
-    progress_q: Any = ctx.Queue() if bar is not None else _NullQueue()
+def _run(pool: Executor, indices: Iterator[int], budget_left: Callable[[int, float], bool],
+         finish: Callable[[EpisodeResult | ShippedEpisode], int]) -> None:
+    """At most one episode per worker in flight, and none started once the episodes in flight (at the mean
+    size of those kept so far) would fill the frame budget. Any exception (a worker's, or Ctrl-C) stops the
+    workers at once: their episodes in progress are lost, committed ones are kept."""
     kept: list[int] = []
-    pool = ctx.Pool(workers, initializer=_worker_init,
-                    initargs=(out, cfg, gcfg, ecfg, progress_q, world_factory, learner))
-    running: dict[int, Any] = {}  # index -> AsyncResult
     exhausted = False
-    try:
-        while True:
-            mean = float(np.mean(kept)) if kept else 0.0
-            while not exhausted and len(running) < workers and budget_left(len(running), mean):
-                i = next(indices, None)
-                if i is None:
-                    exhausted = True
-                    break
-                running[i] = pool.apply_async(_worker_episode, (seed, i))
-            if not running:
+    while True:
+        mean = float(np.mean(kept)) if kept else 0.0
+        while not exhausted and len(pool) < pool.workers and budget_left(len(pool), mean):
+            i = next(indices, None)
+            if i is None:
+                exhausted = True
                 break
-            next(iter(running.values())).wait(0.25)
-            if bar is not None:
-                bar.drain(progress_q)
-            for i in [i for i, res in running.items() if res.ready()]:
-                r: EpisodeResult = running.pop(i).get()  # re-raises a worker's exception here
-                account(r)
-                if r.frames_kept:
-                    kept.append(r.frames_kept)
-                if bar is not None:
-                    bar.episode(r, summary)
-        pool.close()
-        pool.join()
-    except BaseException:
-        pool.terminate()
-        pool.join()
-        raise
+            pool.submit(i, i)
+        if not len(pool):
+            return
+        for _, value in pool.results():
+            n = finish(value)
+            if n:
+                kept.append(n)
 
 
-class _NullQueue:
-    def put(self, item: tuple[int, int]) -> None:
-        pass
+def _finish(value: EpisodeResult | ShippedEpisode, writer: DatasetWriter, account: Callable[[EpisodeResult], None],
+            bar: _Progress | None, summary: CollectSummary) -> int:
+    """A finished episode: a shipped file is stored (atomically, then listed), then counted. Returns its frames."""
+    if isinstance(value, ShippedEpisode):
+        if value.entry is not None:
+            writer.add_episode_file(value.entry, value.data)
+        value = value.result
+    account(value)
+    if bar is not None:
+        bar.episode(value, summary)
+    return value.frames_kept
 
 
 class _Progress:
@@ -321,14 +341,6 @@ class _Progress:
         self.bar.update(n)
         if self.bar.total and self.bar.n > self.bar.total:  # episodes are stored whole: the budget is a floor
             self.bar.total = self.bar.n
-
-    def drain(self, q: Any) -> None:
-        while True:
-            try:
-                episode, n = q.get_nowait()
-            except queue.Empty:
-                return
-            self.frame(episode, n)
 
     def episode(self, r: EpisodeResult, summary: CollectSummary) -> None:
         self.bar.update(r.frames_kept - self.live.pop(r.episode_id, 0))

@@ -31,7 +31,14 @@ def _fraction(text: str) -> float:
     return v
 
 
+def _span(r: tuple[int, int]) -> str:
+    return str(r[0]) if r[0] == r[1] else f"{r[0]}-{r[1]}"
+
+
 def add_parser(subparsers: Any) -> argparse.ArgumentParser:
+    from yawil.data.collect_config import COLLISION_POLICIES, DEFAULT_FRAMES, CollectConfig
+
+    d = CollectConfig()  # every default below is the dataclass's
     p: argparse.ArgumentParser = subparsers.add_parser(
         "collect",
         help="drive the expert on random routes and record a training dataset",
@@ -42,33 +49,38 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
             "resumes (episodes already in the dataset are skipped). See docs/expert.md."
         ),
     )
-    p.add_argument("--town", default="town01", help="town01, town02, square or a layout JSON file (default town01)")
+    p.add_argument("--town", default=d.town, help=f"town01, town02, square or a layout JSON file (default {d.town})")
     p.add_argument("--weathers", default="train",
                    help="'train', 'test', 'all' or comma-separated weather names (default train)")
     budget = p.add_argument_group("budget (the first one reached stops the run)")
     budget.add_argument("--frames", type=int, default=None,
-                        help="stop once the dataset holds this many frames; episodes are stored whole, so the last one may go past it (default 200000 unless --episodes)")
+                        help=f"stop once the dataset holds this many frames; episodes are stored whole, so the last one may go past it (default {DEFAULT_FRAMES} unless --episodes)")
     budget.add_argument("--episodes", type=int, default=None, help="episode indices 0..N-1 of this seed")
     p.add_argument("--out", required=True, help="dataset directory (created, or resumed); required")
     p.add_argument("--workers", type=int, default=1,
                    help="parallel processes, each running its own simulator (default 1)")
+    from yawil.executor import add_executor_arguments
+
+    add_executor_arguments(p)
     p.add_argument("--seed", type=int, default=0, help="episode ids are seed*100000+index (default 0)")
-    p.add_argument("--vehicles", type=_range, default=(10, 30), metavar="N|LO-HI",
-                   help="vehicles per episode: N, or LO-HI drawn uniformly per episode (default 10-30)")
-    p.add_argument("--pedestrians", type=_range, default=(5, 20), metavar="N|LO-HI",
-                   help="pedestrians per episode: N, or LO-HI drawn uniformly per episode (default 5-20)")
-    p.add_argument("--min-route-length", type=float, default=200.0, help="metres (default 200)")
-    p.add_argument("--noise", type=_fraction, default=0.10,
-                   help="fraction of frames with a steering perturbation (default 0.1)")
-    p.add_argument("--noise-amplitude", type=_fraction, default=0.5,
-                   help="perturbation drawn from U[-a, a] (default 0.5)")
-    p.add_argument("--straight-keep", type=_fraction, default=0.5,
-                   help="fraction of frames kept on long straights (default 0.5)")
-    p.add_argument("--blocked-keep-every", type=int, default=10,
-                   help="keep every Nth frame once stopped for more than 2 s (default 10)")
-    p.add_argument("--on-collision", choices=("trim", "keep", "discard"), default="trim",
-                   help="trim: keep the episode without its last 2 s; keep: all frames; discard: drop the episode "
-                   "(default trim)")
+    p.add_argument("--vehicles", type=_range, default=d.vehicles, metavar="N|LO-HI",
+                   help=f"vehicles per episode: N, or LO-HI drawn uniformly per episode (default {_span(d.vehicles)})")
+    p.add_argument("--pedestrians", type=_range, default=d.pedestrians, metavar="N|LO-HI",
+                   help=f"pedestrians per episode: N, or LO-HI drawn uniformly per episode (default {_span(d.pedestrians)})")
+    p.add_argument("--min-route-length", type=float, default=d.min_route_length,
+                   help=f"metres (default {d.min_route_length:g})")
+    p.add_argument("--noise", type=_fraction, default=d.noise_fraction,
+                   help=f"fraction of frames with a steering perturbation (default {d.noise_fraction:g})")
+    p.add_argument("--noise-amplitude", type=_fraction, default=d.noise_amplitude,
+                   help=f"perturbation drawn from U[-a, a] (default {d.noise_amplitude:g})")
+    p.add_argument("--straight-keep", type=_fraction, default=d.straight_keep,
+                   help=f"fraction of frames kept on long straights (default {d.straight_keep:g})")
+    p.add_argument("--blocked-keep-every", type=int, default=d.blocked_keep_every,
+                   help=f"keep every Nth frame once stopped for more than {d.blocked_after:g} s "
+                        f"(default {d.blocked_keep_every})")
+    p.add_argument("--on-collision", choices=COLLISION_POLICIES, default=d.on_collision,
+                   help=f"trim: keep the episode without its last {d.trim_seconds:g} s; keep: all frames; discard: drop "
+                        f"the episode (default {d.on_collision})")
     p.add_argument("--expert-arg", action="append", default=[], metavar="KEY=VALUE",
                    help="a setting of the expert's ExpertConfig (docs/expert.md), e.g. comfort_decel=1.5; repeat for more "
                         "(stored in the dataset's config, so a resume must give the same)")
@@ -77,37 +89,56 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                    help="on resume, decode every stored image and re-collect the episodes that fail (a resume always "
                         "re-collects missing, truncated or unreadable episode files)")
     p.add_argument("--backend", default="embedded", choices=("embedded", "carla"), help="simulator (default embedded)")
-    p.add_argument("--host", default="localhost", help="--backend carla: server host (default localhost)")
-    p.add_argument("--port", type=int, default=2000, help="--backend carla: server port (default 2000)")
-    p.add_argument("--timeout", type=float, default=10.0,
-                   help="--backend carla: seconds a client call may take (default 10; map loads get at least 60)")
+    from yawil.sim.carla.connection import add_connection_arguments
+
+    add_connection_arguments(p, timeout_help="seconds a client call may take", note="map loads get at least 60")
+    from yawil.sim.carla.servers import add_servers_argument
+
+    add_servers_argument(p)
     return p
 
 
-def run(args: argparse.Namespace) -> int:
-    from yawil.data.collect import CollectConfig, collect
-    from yawil.expert import ExpertConfig
+def config_from_args(args: argparse.Namespace) -> Any:
+    """The CollectConfig of the command line (fields it has no flag for keep the dataclass's defaults)."""
+    from yawil.data.collect_config import CollectConfig
 
-    if args.frames is None and args.episodes is None:
-        args.frames = 200_000
-    expert = ExpertConfig.from_items(args.expert_arg)
-    cfg = CollectConfig(
-        vehicles=args.vehicles, pedestrians=args.pedestrians, min_route_length=args.min_route_length,
+    return CollectConfig(
+        town=args.town, vehicles=args.vehicles, pedestrians=args.pedestrians, min_route_length=args.min_route_length,
         noise_fraction=args.noise, noise_amplitude=args.noise_amplitude, straight_keep=args.straight_keep,
         blocked_keep_every=args.blocked_keep_every, on_collision=args.on_collision,
     )
-    from yawil.sim import world_factory
 
-    if args.backend != "embedded" and args.workers != 1:
-        raise SystemExit(f"yawil collect: --backend {args.backend} drives one server: use --workers 1 (got {args.workers})")
+
+def run(args: argparse.Namespace) -> int:
+    from yawil.data.collect import collect
+    from yawil.data.collect_config import DEFAULT_FRAMES
+    from yawil.expert import ExpertConfig
+
+    if args.frames is None and args.episodes is None:
+        args.frames = DEFAULT_FRAMES
+    expert = ExpertConfig.from_items(args.expert_arg)
+    cfg = config_from_args(args)
+    from yawil.executor import executor_from_args
+    from yawil.sim import world_factory
+    from yawil.sim.carla.servers import server_worlds, servers_for
+
+    executor = executor_from_args(args)
+    servers = servers_for(args.carla_servers, args.workers, args.backend)
+    if args.backend != "embedded" and args.workers != 1 and servers is None:
+        raise SystemExit(f"yawil collect: --backend {args.backend} with --workers {args.workers}: give one server per "
+                         "worker with --carla-servers HOST:PORT,...")
     if args.backend == "embedded":  # before any folder is made: a typo'd town must not leave a dataset behind
         from yawil.sim.town.map.layout import resolve_town
 
         resolve_town(args.town)
-    factory = world_factory(args.backend, **({} if args.backend == "embedded" else {"host": args.host, "port": args.port, "timeout": args.timeout}))
+    from yawil.sim.carla.connection import connection_from_args
+
+    factory = world_factory(args.backend, **({} if args.backend == "embedded" else connection_from_args(args).kwargs()))
+    if servers is not None:
+        factory = server_worlds(servers, args.timeout)  # type: ignore[assignment]
     summary = collect(args.out, verify=args.verify, town=args.town, weathers=args.weathers, frames=args.frames, episodes=args.episodes,
                       workers=args.workers, seed=args.seed, config=cfg, progress=not args.quiet,
-                      world_factory=factory, expert_config=expert)  # fmt: skip
+                      world_factory=factory, expert_config=expert, executor=executor)  # fmt: skip
     outcomes = ", ".join(f"{k} {v}" for k, v in sorted(summary.outcomes.items())) or "none"
     print(f"{summary.out}: wrote {summary.episodes_written} episodes, {summary.frames_written} frames in "
           f"{summary.seconds:.0f} s ({summary.frames_per_second:.1f} frames/s); skipped {summary.episodes_skipped} "

@@ -15,6 +15,7 @@ import math
 import os
 import re
 import shutil
+from dataclasses import replace
 from pathlib import Path
 from types import TracebackType
 from typing import Any
@@ -157,10 +158,36 @@ class DatasetWriter:
         self._open[episode_id] = ep
         return ep
 
+    def add_episode_file(self, entry: EpisodeEntry, data: bytes) -> None:
+        """Store an episode file finished by another writer (a Ray worker's, on its own machine): written whole
+        under the temporary name an EpisodeWriter of this process would use, fsynced, renamed into place, then
+        listed in the manifest: the order and crash recovery of `commit`."""
+        if entry.file != episode_filename(entry.episode):
+            raise ValueError(f"episode {entry.episode}: file {entry.file!r}, expected {episode_filename(entry.episode)!r}")
+        if entry.episode in self._open or self.has_episode(entry.episode):
+            raise ValueError(f"episode {entry.episode} already exists in {self.root}; a resumed collection must skip it")
+        final = self.root / entry.file
+        tmp = _tmp_path(final)
+        check_free_space(tmp)
+        try:
+            with open(tmp, "wb") as f:
+                f.write(data)
+                f.flush()
+                os.fsync(f.fileno())
+            os.replace(tmp, final)
+        except BaseException:
+            with contextlib.suppress(OSError):
+                tmp.unlink()
+            raise
+        self._list(replace(entry, bytes=len(data)))
+
     def _finish(self, ep: EpisodeWriter, entry: EpisodeEntry | None) -> None:
         self._open.pop(ep.episode_id, None)
-        if entry is None:
-            return
+        if entry is not None:
+            self._list(entry)
+
+    def _list(self, entry: EpisodeEntry) -> None:
+        """Add a committed episode to the manifest (rewritten atomically under its lock)."""
         with manifest_lock(self.root):
             manifest = read_manifest(self.root)
             self._check_config(manifest)
@@ -201,7 +228,7 @@ class EpisodeWriter:
         self.town, self.weather, self.seed, self.meta = town, weather, int(seed), meta
         self.route_length: float | None = None if rl is None else float(rl)
         self.final_path = writer.root / episode_filename(episode_id)
-        self.tmp_path = self.final_path.with_name(f".{self.final_path.name}.{os.getpid()}.tmp")
+        self.tmp_path = _tmp_path(self.final_path)
         check_free_space(self.tmp_path)
         self._h5: h5py.File | None = h5py.File(self.tmp_path, "w", libver="latest")
         self._k: int | None = None
@@ -361,6 +388,12 @@ class EpisodeWriter:
     def __del__(self) -> None:
         if not getattr(self, "_done", True):
             self.discard()
+
+
+def _tmp_path(final: Path) -> Path:
+    """Where an episode file is written before its rename: named for this process (see `_TMP_RE`), so that a
+    writer that finds it after a crash knows whether its writer still runs."""
+    return final.with_name(f".{final.name}.{os.getpid()}.tmp")
 
 
 def _pid_alive(pid: int) -> bool:

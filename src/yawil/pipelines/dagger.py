@@ -28,6 +28,7 @@ from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
+from yawil.executor import ExecutorConfig, add_executor_arguments, executor_from_args
 from yawil.stages import read_marker, run_stage
 
 TRAIN_MODES = ("finetune", "scratch")
@@ -59,6 +60,8 @@ class DaggerConfig:
     batch_size: int = 64
     lr: float = 1e-3
     workers: int = 2  # collection processes
+    executor: str = "local"  # where they run (yawil.executor): changes no result, so a resume may change it
+    ray_address: str | None = None
     threads: int = 0  # torch threads of training (0: all cores)
     train_args: dict[str, Any] = field(default_factory=dict)  # further TrainConfig settings (speed_dropout, ...)
     round0: str | None = None  # an existing round-0 checkpoint (then expert_data must be its data)
@@ -84,6 +87,7 @@ class DaggerConfig:
         need(isinstance(self.speed_control, bool), "speed_control", "true or false")
         need(isinstance(self.expert_args, dict), "expert_args", "a mapping of ExpertConfig settings")
         self.expert_config()  # an unknown or invalid expert setting fails here
+        self.executor_config()  # and an unknown executor
         aux = (self.train_args.get("model_args") or {}).get("aux") is True
         need(not self.speed_control or aux or self.round0 is not None, "speed_control",
              "a model with an aux head (--train-arg 'model_args={\"aux\": true}' --train-arg aux_weight=...)")
@@ -92,6 +96,9 @@ class DaggerConfig:
         from yawil.expert import ExpertConfig
 
         return ExpertConfig.from_settings(self.expert_args, "--expert-arg")
+
+    def executor_config(self) -> ExecutorConfig:
+        return ExecutorConfig(self.executor, self.ray_address)
 
     def beta_of(self, r: int) -> float:
         return float(self.beta[min(r, len(self.beta)) - 1])
@@ -156,7 +163,8 @@ class DaggerRun:
         mine = self.cfg.to_dict()
         saved = read_marker(path)  # the same JSON-object file as a stage marker
         if saved is not None:
-            growable = {"rounds"}  # more rounds may be added to a finished run
+            # more rounds may be added to a finished run; where the episodes run (the executor) changes no result
+            growable = {"rounds", "executor", "ray_address"}
             defaults = DaggerConfig().to_dict()  # a setting added later reads as its default in older folders
             saved = {**{k: v for k, v in defaults.items() if k not in saved}, **saved}
             diff = sorted(k for k in set(saved) | set(mine) if k not in growable and saved.get(k) != mine.get(k))
@@ -199,7 +207,8 @@ class DaggerRun:
 
         s = collect(self.expert_data(), town=self.cfg.town, weathers="train", frames=self.cfg.expert_frames,
                     workers=self.cfg.workers, seed=self.cfg.seed, progress=self.progress, desc="round 0",
-                    max_episode_frames=self.cfg.episode_frames, expert_config=self.cfg.expert_config())
+                    max_episode_frames=self.cfg.episode_frames, expert_config=self.cfg.expert_config(),
+                    executor=self.cfg.executor_config())
         return {"frames": s.dataset_frames, "episodes": s.episodes_written + s.episodes_skipped}
 
     def collect_round(self, r: int) -> dict[str, Any]:
@@ -218,7 +227,7 @@ class DaggerRun:
         s = collect(self.round_data(r), town=cfg.town, weathers="train", frames=cfg.round_frames, workers=cfg.workers,
                     seed=cfg.seed + ROUND_SEED_STRIDE * r, progress=self.progress, learner=learner, desc=f"round {r}",
                     noise_fraction=0.0, trim_seconds=1.0, max_episode_frames=cfg.episode_frames,
-                    expert_config=cfg.expert_config())
+                    expert_config=cfg.expert_config(), executor=cfg.executor_config())
         self.log(f"round {r}: {s.frames_written} frames stored this run; frames driven by "
                  f"{json.dumps(s.drivers)}; {s.takeovers} takeovers; outcomes {json.dumps(s.outcomes)}")
         return {"frames": s.dataset_frames, "drivers": s.drivers, "takeovers": s.takeovers, "outcomes": s.outcomes,
@@ -276,6 +285,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--batch-size", type=int, default=d.batch_size)
     p.add_argument("--lr", type=float, default=d.lr)
     p.add_argument("--workers", type=int, default=d.workers, help="collection processes (default 2)")
+    add_executor_arguments(p)
     p.add_argument("--threads", type=int, default=d.threads, help="torch threads of training (default 0: all cores)")
     p.add_argument("--train-arg", action="append", default=[], metavar="KEY=VALUE",
                    help="a further train setting (JSON value), e.g. --train-arg speed_dropout=0.3")
@@ -322,7 +332,8 @@ def run(args: argparse.Namespace) -> int:
             train_mode=args.train_mode, beta=_floats(args.beta, "--beta"), segment_seconds=args.segment_seconds,
             takeover_lateral=args.takeover_lateral, takeover_decel=args.takeover_decel,
             takeover_stall=args.takeover_stall, takeover_seconds=args.takeover_seconds, batch_size=args.batch_size,
-            lr=args.lr, workers=args.workers, threads=args.threads, train_args=_train_args(args.train_arg),
+            lr=args.lr, workers=args.workers, executor=executor_from_args(args).kind, ray_address=args.ray_address,
+            threads=args.threads, train_args=_train_args(args.train_arg),
             round0=args.round0, expert_data=args.expert_data, speed_control=args.speed_control,
             expert_args=_expert_args(args.expert_arg),
         )

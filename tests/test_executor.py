@@ -265,6 +265,10 @@ def test_ray_collect_survives_a_killed_worker_and_matches_local(tmp_path: Path, 
     for e in local.episodes:
         _same_h5(local.path_of(e), ray.path_of(e))
     assert not list((tmp_path / "ray" / "episodes").glob(".*"))  # no temporary file left behind
+    import tempfile
+
+    killed = flag.read_text()  # the killed worker's episode dataset was removed by a later episode
+    assert not list(Path(tempfile.gettempdir()).glob(f"yawil-episode-{killed}-*"))
     again = collect(tmp_path / "ray", workers=2, world_factory=line_world, executor=RAY, **kw)
     assert (again.episodes_written, again.episodes_skipped) == (0, 4)
 

@@ -261,6 +261,7 @@ class LocalExecutor(Executor):
         self._drain()
 
     def terminate(self) -> None:
+        # concurrent.futures stops no running task (terminate_workers comes with Python 3.14): end the processes
         for process in list((self._pool._processes or {}).values()):
             process.terminate()
         self._pool.shutdown(wait=True, cancel_futures=True)
@@ -285,7 +286,9 @@ def init_ray(address: str | None, workers: int, **options: Any) -> bool:
         return False
     common = {"log_to_driver": False, "logging_level": logging.WARNING, **options}
     if address is None:
-        ray.init(num_cpus=workers, include_dashboard=False, object_store_memory=RAY_OBJECT_STORE_BYTES, **common)
+        # "local": a new Ray of this process's own, even where `ray start` left one running or named in RAY_ADDRESS
+        ray.init(address="local", num_cpus=workers, include_dashboard=False,
+                 object_store_memory=RAY_OBJECT_STORE_BYTES, **common)
     else:
         ray.init(address=address, **common)
     return True

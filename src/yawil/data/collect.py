@@ -31,7 +31,7 @@ from yawil.data.episode import (
     run_episode,
 )
 from yawil.data.manifest import EpisodeEntry, read_manifest
-from yawil.data.writer import DatasetWriter
+from yawil.data.writer import DatasetWriter, _pid_alive
 from yawil.executor import Executor, ExecutorConfig, Report, for_worker, open_executor
 from yawil.expert import ExpertConfig
 from yawil.guidance import GuidanceConfig
@@ -128,6 +128,20 @@ class EpisodeWork:
         return CollectWorker(self, rank, report)
 
 
+SCRATCH_PREFIX = "yawil-episode-"
+
+
+def _remove_dead_scratch(folder: Path) -> None:
+    """Remove the episode datasets of workers that were killed in the middle of one (their pid is gone)."""
+    import re
+    import shutil
+
+    for p in folder.glob(f"{SCRATCH_PREFIX}*"):
+        m = re.match(rf"{SCRATCH_PREFIX}(\d+)-", p.name)
+        if m and not _pid_alive(int(m.group(1))):
+            shutil.rmtree(p, ignore_errors=True)
+
+
 class CollectWorker:
     """One process's world and learner, kept for all its episodes; a task is an episode index."""
 
@@ -147,9 +161,10 @@ class CollectWorker:
             return self._drive(plan, self.writer)
         import tempfile
 
-        # the usual writer, in a dataset of its own that lives as long as the episode (a kill leaves one
-        # partial episode file in the node's temporary folder)
-        with tempfile.TemporaryDirectory(prefix="yawil-episode-") as scratch:
+        # the usual writer, in a dataset of its own that lives as long as the episode, named for this process so
+        # that what a killed worker leaves is removed by the next episode on this machine
+        _remove_dead_scratch(Path(tempfile.gettempdir()))
+        with tempfile.TemporaryDirectory(prefix=f"{SCRATCH_PREFIX}{os.getpid()}-") as scratch:
             result = self._drive(plan, DatasetWriter(scratch, self.config))
             m = read_manifest(scratch)
             if not m.episodes:

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pytest
@@ -163,3 +164,33 @@ def test_record_writes_a_video_per_episode(tmp_path: Path) -> None:
     run_benchmark(eps, AgentSpec("expert"), tmp_path / "r", record=True, progress=False)
     videos = list((tmp_path / "r" / "videos").iterdir())
     assert len(videos) == 1 and videos[0].stat().st_size > 10_000
+
+
+def test_the_agents_device(tmp_path: Path, tiny_checkpoint: Any, monkeypatch: pytest.MonkeyPatch) -> None:
+    """--device: the model on that device, named in the options only when not cpu (earlier records still
+    match), cuda without a CUDA device refused in one line before any episode."""
+    import torch
+
+    from yawil.bench.runner import agent_device
+    from yawil.cli import main
+
+    ckpt = str(tiny_checkpoint("cil").path)
+    spec = AgentSpec(ckpt, device="cpu").validate()
+    assert "device" not in spec.options() and spec.options() == AgentSpec(ckpt).options()
+    agent = spec.build(0)
+    assert {p.device.type for p in agent.model.parameters()} == {"cpu"}  # type: ignore[attr-defined]
+    assert AgentSpec(ckpt, device="cuda").options()["device"] == "cuda"
+    assert "device" not in AgentSpec("expert", device="cuda").options()  # the expert has no model
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert (agent_device("cpu"), agent_device("auto")) == ("cpu", "cpu")
+    with pytest.raises(ValueError, match=r"^--device cuda: torch sees no CUDA device"):
+        AgentSpec(ckpt, device="cuda").validate()
+    with pytest.raises(ValueError, match="expected cpu or cuda"):
+        AgentSpec(ckpt, device="gpu").validate()
+    with pytest.raises(SystemExit) as stop:
+        main(["bench", "--suite", "corl2017", "--agent", ckpt, "--device", "cuda", "--routes", "0", "--seeds", "1",
+              "--out", str(tmp_path / "r"), "--no-progress"])
+    assert str(stop.value) == "yawil bench: --device cuda: torch sees no CUDA device here; use --device cpu (or auto)"
+    assert not (tmp_path / "r").exists()
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    assert agent_device("auto") == "cuda"

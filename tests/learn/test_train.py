@@ -101,7 +101,8 @@ def test_defaults_are_the_papers() -> None:
 
 def test_every_setting_has_a_command_line_option() -> None:
     covered = {dest for _, dest, _, _ in _OPTIONS} | {"model", "data", "out", "model_args", "augment", "progress",
-                                                     "reason_fractions"}  # --oversample REASON=SHARE
+                                                     "reason_fractions",  # --oversample REASON=SHARE
+                                                     "data_on_device"}  # --data-on-device
     assert {f.name for f in fields(TrainConfig)} == covered
     cfg = build_config(_parse(["--data", "d", "--oversample", "vehicle=0.2", "--oversample", "red_light=0.1"]))
     assert cfg.reason_fractions == {"vehicle": 0.2, "red_light": 0.1}

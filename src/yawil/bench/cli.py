@@ -91,6 +91,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         "comma-separate; default: all of the suite's",
     )
     p.add_argument("--agent", default="expert", help="'expert' or a checkpoint path (default expert)")
+    p.add_argument("--device", default="cpu", choices=("cpu", "cuda", "auto"),
+                   help="where a learned agent's model runs (default cpu; auto: cuda when torch sees one); each "
+                        "worker process loads its own copy (docs/scale.md)")
     p.add_argument("--seeds", type=int, default=None, help="seeds per episode (default: protocol, 5 static / 3 dynamic)")
     p.add_argument("--workers", type=int, default=1, help="processes driving episodes in parallel (default 1)")
     from yawil.executor import add_executor_arguments
@@ -190,7 +193,7 @@ def _run_suite(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     apply_preset(args)
-    from yawil.bench.runner import AgentSpec, run_benchmark
+    from yawil.bench.runner import AgentSpec, agent_device, run_benchmark
     from yawil.bench.suites import episodes
     from yawil.executor import executor_from_args
     from yawil.sim.carla.servers import server_worlds, servers_for
@@ -198,7 +201,8 @@ def _run_suite(args: argparse.Namespace) -> int:
     executor = executor_from_args(args)
     servers = servers_for(args.carla_servers, args.workers, args.backend)
     spec = AgentSpec(args.agent, args.yaw_noise_deg, args.command_noise_p, args.speed_control,
-                     args.yaw_noise, args.command_noise, tuple(args.expert_arg)).validate()
+                     args.yaw_noise, args.command_noise, tuple(args.expert_arg),
+                     device=agent_device(args.device)).validate()
     factory: Any = None
     if args.backend != "embedded":
         if args.workers != 1 and servers is None:

@@ -46,6 +46,9 @@ class AgentSpec:
     yaw_noise_mode: str = "raw"  # readings of the two noises (yawil.guidance.YAW_NOISE_MODES, COMMAND_NOISE_MODES)
     command_noise_mode: str = "burst-start"
     expert_args: tuple[str, ...] = ()  # KEY=VALUE settings of the expert's ExpertConfig (`--expert-arg`)
+    # Where a learned agent's model runs: cpu or cuda (`--device`; `agent_device` resolves auto). Each worker
+    # process loads its own copy. The expert has no model and ignores it.
+    device: str = "cpu"
 
     @property
     def is_expert(self) -> bool:
@@ -59,6 +62,8 @@ class AgentSpec:
             opts["command_noise_mode"] = self.command_noise_mode
         if self.speed_control:  # only when set, so the records of earlier runs still match ("target" stays True)
             opts["speed_control"] = True if self.speed_control in (True, "target") else self.speed_control
+        if self.device != "cpu" and not self.is_expert:  # only when set, so the records of earlier runs still match
+            opts["device"] = self.device
         if self.expert_args:  # the settings that differ from the default expert, by name
             from yawil.expert import ExpertConfig
 
@@ -74,6 +79,10 @@ class AgentSpec:
             raise ValueError(f"--speed-control {self.speed_control!r}: expected target or lead")
         if self.expert_args and not self.is_expert:
             raise ValueError("--expert-arg applies to --agent expert only")
+        if self.device not in ("cpu", "cuda"):
+            raise ValueError(f"--device {self.device!r}: expected cpu or cuda (auto is resolved by agent_device)")
+        if self.device == "cuda" and not self.is_expert:
+            agent_device("cuda")  # no CUDA device here: one line, before any episode
         if self.expert_args:
             from yawil.expert import ExpertConfig
 
@@ -118,8 +127,24 @@ class AgentSpec:
         return Agent.from_checkpoint(  # type: ignore[no-any-return]
             self.agent, yaw_noise_deg=self.yaw_noise_deg, command_noise_p=self.command_noise_p, seed=seed,
             speed_control=self.speed_control, yaw_noise_mode=self.yaw_noise_mode,
-            command_noise_mode=self.command_noise_mode,
+            command_noise_mode=self.command_noise_mode, device=self.device,
         )
+
+
+def agent_device(name: str) -> str:
+    """The device of `--device` for a learned agent: cpu, cuda, or auto (cuda when torch sees one, else cpu);
+    cuda without a CUDA device is refused in one line."""
+    if name not in ("cpu", "cuda", "auto"):
+        raise ValueError(f"--device {name!r}: expected cpu, cuda or auto")
+    if name == "cpu":
+        return "cpu"
+    import torch
+
+    if torch.cuda.is_available():
+        return "cuda"
+    if name == "auto":
+        return "cpu"
+    raise ValueError("--device cuda: torch sees no CUDA device here; use --device cpu (or auto)")
 
 
 @dataclass

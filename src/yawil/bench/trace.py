@@ -22,7 +22,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from yawil.bench.metrics import EpisodeTracker
-from yawil.bench.runner import AgentSpec
+from yawil.bench.runner import AgentSpec, agent_device
 from yawil.bench.suites import Episode, episodes
 from yawil.fileio import write_atomic
 
@@ -114,6 +114,8 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                    help="as yawil bench --speed-control")
     p.add_argument("--expert-arg", action="append", default=[], metavar="KEY=VALUE",
                    help="a setting of the shadowing expert's ExpertConfig (and of the agent, with --agent expert)")
+    p.add_argument("--device", default="cpu", choices=("cpu", "cuda", "auto"),
+                   help="where a learned agent's model runs (default cpu), as yawil bench --device")
     p.add_argument("--tail", type=int, default=0, help="also print the last N rows")
     return p
 
@@ -121,7 +123,8 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
 def run(args: argparse.Namespace) -> int:
     expert_args = tuple(args.expert_arg)
     spec = AgentSpec(args.agent, speed_control=args.speed_control,
-                     expert_args=expert_args if args.agent == "expert" else ()).validate()
+                     expert_args=expert_args if args.agent == "expert" else (),
+                     device=agent_device(args.device)).validate()
     ep = find_episode(args.episode, args.suite)
     res = trace_episode(ep, spec, args.out, expert_args)
     end = "success" if res.success else (res.reason or "unfinished")

@@ -91,6 +91,11 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--no-augment", action="store_true", help="switch augmentation off")
     p.add_argument("--no-progress", action="store_true", help="no progress bar")
     p.add_argument(
+        "--data-on-device", action="store_true", default=None,
+        help="read both splits once into tensors on the training device (uint8 images) and draw every batch there: "
+             "no per-batch reads or host-to-device copies (for a GPU; refused when they do not fit)",
+    )  # fmt: skip
+    p.add_argument(
         "--dist-backend", choices=("gloo", "nccl"), default=None,
         help="under torchrun: the process-group backend (default: nccl on CUDA, gloo on the CPU)",
     )  # fmt: skip
@@ -134,6 +139,8 @@ def overrides_from_args(args: argparse.Namespace) -> dict[str, Any]:
         over["augment"] = augment
     if args.no_progress:
         over["progress"] = False
+    if getattr(args, "data_on_device", None):
+        over["data_on_device"] = True
     return over
 
 

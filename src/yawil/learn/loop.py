@@ -34,6 +34,7 @@ from yawil.learn.augment import augment_batch
 from yawil.learn.config import TrainConfig, auto_threads
 from yawil.learn.distributed import Dist
 from yawil.learn.loss import compute_loss
+from yawil.learn.resident import ResidentData, load_splits
 from yawil.learn.sampling import (
     brake_weights,
     drop_speed,
@@ -173,7 +174,20 @@ def _train(
         writer: Any = SummaryWriter(str(out / "tb"), purge_step=pos.step if resume else None)
     else:
         writer = distributed.NoWriter()
-    val_loader = make_loader(val_ds, sequential_batches(len(val_ds), cfg.batch_size), cfg, runtime)
+    if len(train_ds) == 0:
+        raise ValueError("the training split is empty: the dataset roots hold no training frames")
+    resident: ResidentData | None = None
+    resident_val: ResidentData | None = None
+    if cfg.data_on_device:  # both splits read once into tensors on the device (yawil.learn.resident)
+        resident, resident_val = load_splits(train_ds, val_ds, kind, cfg, runtime, announce=main)
+    val_batches = sequential_batches(len(val_ds), cfg.batch_size)
+    val_loader: Any = (make_loader(val_ds, val_batches, cfg, runtime) if resident is None or resident_val is None
+                       else resident_val.batches(val_batches))
+
+    def loader_of(batches: list[list[int]]) -> Any:
+        """This rank's batches from the device-resident split, or from the dataset through a DataLoader."""
+        return make_loader(train_ds, batches, cfg, runtime) if resident is None else resident.batches(batches)
+
     started = time.monotonic()
     stopped_by = "epochs"
 
@@ -246,8 +260,6 @@ def _train(
 
     model.train()
     n_batches = 0
-    if len(train_ds) == 0:
-        raise ValueError("the training split is empty: the dataset roots hold no training frames")
     p = None
     if cfg.brake_fraction is not None:
         brake, speed = label_columns(train_ds, ["brake", "speed"])
@@ -262,11 +274,11 @@ def _train(
         batches = epoch_batches(len(train_ds), cfg.batch_size, cfg.seed, pos.epoch, p)
         sizes: list[int] | None = None  # global batch sizes, under torchrun
         if d is None:
-            loader = make_loader(train_ds, batches[pos.batch :], cfg, runtime)
+            loader = loader_of(batches[pos.batch :])
         else:
             batches = distributed.usable_batches(batches, d.world)
             mine, sizes = distributed.rank_batches(batches[pos.batch :], d)
-            loader = make_loader(train_ds, mine, cfg, runtime)
+            loader = loader_of(mine)
         n_batches = len(batches)
         bar = tqdm(
             total=n_batches, initial=pos.batch, desc=f"epoch {pos.epoch + 1}/{cfg.epochs}",

@@ -14,12 +14,16 @@ Expected time (measured parts in docs/performance.md; the rest extrapolated from
   at ~40 steps/s per worker, about 10 h per condition. On one modern GPU the training is about 100x faster
   (a day for all models) and the benchmark is then CPU-bound (render + simulation, a few hours).
   quick profile: about 1 h on this CPU.
+  gpu profile (one GPU node, docs/scale.md): the paper's sizes; collection and benchmarks on every core, training
+  on CUDA with bf16 autocast, channels_last and the dataset held on the GPU (`--data-on-device`), the learned
+  agents' models on CUDA. Not measured yet (no GPU here); benchmarks/gpu_check.sh measures its parts.
 """
 
 from __future__ import annotations
 
 import argparse
 import json
+import os
 from collections.abc import Callable
 from dataclasses import asdict, dataclass
 from pathlib import Path
@@ -30,15 +34,25 @@ from typing import Any
 class ReproduceProfile:
     name: str
     frames: int
-    collect_workers: int
+    collect_workers: int  # 0: one per core (os.cpu_count())
     epochs: int
     batch_size: int
     max_minutes: float | None  # per model
     routes: str | None  # benchmark route ids per task (None: all 25)
     seeds: int | None  # None: the protocol's (5 static, 3 dynamic)
-    bench_workers: int
+    bench_workers: int  # 0: one per core
     experiments_profile: str  # profile of `yawil experiment square|noise`
     weather_rule: str = "all"  # the protocol's every route in every weather; quick: route i in weather i mod n
+    # How the models train and drive (TrainConfig's fields; `--device` overrides train_device):
+    train_device: str = "auto"
+    precision: str = "auto"
+    channels_last: str = "auto"
+    data_on_device: bool = False
+    bench_device: str = "cpu"  # the learned agents' models in the benchmarks (AgentSpec.device)
+
+    def workers(self, n: int) -> int:
+        """A worker count of the profile: 0 means one per core of this machine."""
+        return n or (os.cpu_count() or 1)
 
 
 PROFILES: dict[str, ReproduceProfile] = {
@@ -46,6 +60,11 @@ PROFILES: dict[str, ReproduceProfile] = {
                               routes="0:5", seeds=1, bench_workers=2, experiments_profile="quick", weather_rule="cycle"),
     "paper": ReproduceProfile("paper", frames=200_000, collect_workers=2, epochs=100, batch_size=512, max_minutes=None,
                               routes=None, seeds=None, bench_workers=2, experiments_profile="paper"),
+    # The paper's sizes on one GPU node: budgets in frames and epochs, none in minutes.
+    "gpu": ReproduceProfile("gpu", frames=200_000, collect_workers=0, epochs=100, batch_size=512, max_minutes=None,
+                            routes=None, seeds=None, bench_workers=0, experiments_profile="paper",
+                            train_device="cuda", precision="bf16", channels_last="on", data_on_device=True,
+                            bench_device="cuda"),
 }  # fmt: skip
 
 MODELS: tuple[tuple[str, str], ...] = (("cil", "cil"), ("cilrs", "cilrs"), ("yilratt", "yilratt"))
@@ -63,7 +82,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--pretrained", default=None, help="local torchvision ResNet34 ImageNet weights (.pth), "
                    "for the 'YILRatt (pretrained)' column; omitted: that column is skipped")  # fmt: skip
     p.add_argument("--seed", type=int, default=0)
-    p.add_argument("--device", default="auto", help="training device: auto | cpu | cuda")
+    p.add_argument("--device", default=None, choices=("auto", "cpu", "cuda"),
+                   help="training device (default: the profile's; gpu: cuda, the others: auto)")
     p.add_argument("--dry-run", action="store_true", help="print the stages and their settings, run nothing")
     return p
 
@@ -80,6 +100,12 @@ def run(args: argparse.Namespace) -> int:
         print(f"  stage {name}")
     if args.dry_run:
         return 0
+    if "cuda" in (args.device or profile.train_device, profile.bench_device):
+        import torch
+
+        if not torch.cuda.is_available():
+            raise SystemExit(f"yawil reproduce: --profile {profile.name} trains or drives on CUDA, but torch sees no "
+                             "CUDA device here; use --profile quick or paper")
     def say(msg: str) -> None:
         print(f"[reproduce] {msg}", flush=True)
 
@@ -97,39 +123,56 @@ def models_to_train(pretrained: str | None) -> list[tuple[str, str, str | None]]
     return runs
 
 
+def train_config(out: Path, p: ReproduceProfile, run_name: str, model: str, weights: str | None, seed: int = 0,
+                 device: str | None = None) -> Any:
+    """The TrainConfig of one model's run in the profile (`device`: the command's --device, else the profile's)."""
+    from yawil.learn.config import TrainConfig
+
+    return TrainConfig(model=model, data=[str(out / "data" / "town01")], out=str(out / "runs" / run_name),
+                       epochs=p.epochs, batch_size=p.batch_size, max_minutes=p.max_minutes, pretrained=weights,
+                       seed=seed, device=device or p.train_device, precision=p.precision,
+                       channels_last=p.channels_last, data_on_device=p.data_on_device,
+                       workers=p.workers(0) if p.data_on_device else 1)  # fmt: skip
+
+
+def agent_spec(out: Path, p: ReproduceProfile, agent: str) -> Any:
+    """The benchmark's AgentSpec of 'expert' or a trained run's best.pt, on the profile's device."""
+    from yawil.bench.runner import AgentSpec
+
+    path = agent if agent == "expert" else str(out / "runs" / agent / "best.pt")
+    return AgentSpec(path, device=p.bench_device)
+
+
 def stages(out: Path, p: ReproduceProfile, pretrained: str | None, seed: int = 0,
-           device: str = "auto") -> list[tuple[str, Callable[[], dict[str, Any]]]]:
+           device: str | None = None) -> list[tuple[str, Callable[[], dict[str, Any]]]]:
     """The stages in order, each (name, a function of no arguments returning its marker's content)."""
     data = out / "data" / "town01"
 
     def collect_stage() -> dict[str, Any]:
         from yawil.data.collect import collect
 
-        s = collect(data, town="town01", weathers="train", frames=p.frames, workers=p.collect_workers, seed=seed)
+        s = collect(data, town="town01", weathers="train", frames=p.frames, workers=p.workers(p.collect_workers),
+                    seed=seed)
         return {"frames": s.dataset_frames}
 
     def train_stage(run_name: str, model: str, weights: str | None) -> Callable[[], dict[str, Any]]:
         def fn() -> dict[str, Any]:
-            from yawil.learn.config import TrainConfig
             from yawil.learn.loop import train
 
-            run_dir = out / "runs" / run_name
-            cfg = TrainConfig(model=model, data=[str(data)], out=str(run_dir), epochs=p.epochs,
-                              batch_size=p.batch_size, max_minutes=p.max_minutes, pretrained=weights,
-                              seed=seed, device=device, workers=1)  # fmt: skip
-            r = train(cfg, resume=(run_dir / "last.pt").is_file())
+            cfg = train_config(out, p, run_name, model, weights, seed, device)
+            r = train(cfg, resume=(Path(cfg.out) / "last.pt").is_file())
             return {"steps": r.steps, "epochs": r.epochs_done, "best_val": r.best_val, "stopped_by": r.stopped_by}
 
         return fn
 
     def bench_stage(label: str, agent: str) -> Callable[[], dict[str, Any]]:
         def fn() -> dict[str, Any]:
-            from yawil.bench.runner import AgentSpec, run_benchmark
+            from yawil.bench.runner import run_benchmark
             from yawil.bench.suites import episodes
 
             eps = episodes("all", routes=p.routes, seeds=p.seeds, weather_rule=p.weather_rule)
-            path = agent if agent == "expert" else str(out / "runs" / agent / "best.pt")
-            s = run_benchmark(eps, AgentSpec(path), out / "results" / label, workers=p.bench_workers, label=label)
+            s = run_benchmark(eps, agent_spec(out, p, agent), out / "results" / label,
+                              workers=p.workers(p.bench_workers), label=label)
             return {"episodes": s.total, "successes": s.successes}
 
         return fn

@@ -495,3 +495,15 @@ def test_pretrained_backbone_is_loaded(tmp_path: Path) -> None:
     assert torch.all(first == 0.125)
     with pytest.raises(FileNotFoundError, match="nope.pth"):
         build_model(TrainConfig(model="cil", pretrained=str(tmp_path / "nope.pth")), {"yaw": K, "xy": 8, "sim_yaw": K})
+
+
+def test_a_run_older_than_a_setting_resumes_with_that_settings_default() -> None:
+    """A checkpoint written before a setting existed (reason_fractions, aux_loss) trained with its default:
+    resuming it with the default is allowed, with anything else refused in one line."""
+    from yawil.learn.setup import check_resumable
+
+    cfg = TrainConfig(model="yaw-guided", data=["d"])
+    saved = {k: v for k, v in cfg.to_dict().items() if k not in ("reason_fractions", "aux_loss")}
+    check_resumable(saved, cfg, Path("run/last.pt"))
+    with pytest.raises(ValueError, match="'aux_loss' was 'same', now 'mse'"):
+        check_resumable(saved, TrainConfig(model="yaw-guided", data=["d"], aux_loss="mse"), Path("run/last.pt"))

@@ -75,12 +75,16 @@ def build_model(cfg: TrainConfig, guidance_dims: Mapping[str, int]) -> Any:
 
 
 def check_resumable(saved: Mapping[str, Any], cfg: TrainConfig, path: Path) -> None:
+    """Refuse a resume whose settings differ from the run's. A setting the run's checkpoint does not name is
+    newer than the run, which trained with that setting's default (e.g. `reason_fractions`, `aux_loss`)."""
     now = cfg.to_dict()
+    defaults = TrainConfig().to_dict()
     for key, value in now.items():
         if key in RESUMABLE_CHANGES or key == "out":
             continue
-        if saved.get(key) != value:
+        was = saved[key] if key in saved else defaults.get(key)
+        if was != value:
             raise ValueError(
-                f"cannot resume {path}: setting {key!r} was {saved.get(key)!r}, now {value!r} "
+                f"cannot resume {path}: setting {key!r} was {was!r}, now {value!r} "
                 f"(only {sorted(RESUMABLE_CHANGES)} may change on resume)"
             )

@@ -20,10 +20,10 @@ def test_collect_with_carla_backend_names_the_absent_server(tmp_path: Path) -> N
               "--out", str(tmp_path / "d"), "--quiet"])  # fmt: skip
 
 
-def test_carla_backend_needs_one_worker(tmp_path: Path) -> None:
-    with pytest.raises(SystemExit, match="--workers 1"):
+def test_carla_backend_needs_one_server_per_worker(tmp_path: Path) -> None:
+    with pytest.raises(SystemExit, match="--workers 2: give one server per worker with --carla-servers"):
         main(["collect", "--backend", "carla", "--workers", "2", "--episodes", "1", "--out", str(tmp_path / "d")])
-    with pytest.raises(SystemExit, match="--workers 1"):
+    with pytest.raises(SystemExit, match="--workers 2: give one server per worker with --carla-servers"):
         main(["bench", "--backend", "carla", "--workers", "2", "--out", str(tmp_path / "r")])
 
 

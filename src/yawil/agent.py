@@ -34,6 +34,7 @@ from yawil.policy.inputs import (
     takes_command,
 )
 from yawil.policy.runtime import Runtime, resolve_runtime
+from yawil.policy.speed import speed_control_mode
 from yawil.sim.types import DT, Control, Observation, command_index
 
 
@@ -72,23 +73,9 @@ class PostProcess:
 
 _EXPERT = ExpertConfig()  # the speed controller's gains are the expert's, from the one place they are set
 
-# How throttle and brake are made (`speed_control`): None, the network's own throttle and brake; "target", the
-# PI below on the aux head's target speed; "lead", the same with the target capped by the expert's braking rule
-# (`hazard_speed`) applied to the aux head's predicted lead vehicle (distance to its stop point, its speed).
-SPEED_CONTROLS: tuple[str, ...] = ("target", "lead")
+# "lead" (yawil.policy.speed): the target capped by `hazard_speed` on the predicted lead vehicle, with these.
 LEAD_DECEL = 1.5  # m/s^2: the "lead" cap's braking profile, gentler than the expert's 2.5 so that it binds earlier
 LEAD_SEEN = 0.9 * LEAD_RANGE  # m: a predicted lead distance beyond this counts as no lead (the label of none is LEAD_RANGE)
-
-
-def speed_control_mode(value: bool | str | None) -> str | None:
-    """Normalise the option: False/None -> None, True -> "target" (its meaning before "lead" existed)."""
-    if value is None or value is False:
-        return None
-    if value is True:
-        return "target"
-    if value not in SPEED_CONTROLS:
-        raise ValueError(f"speed_control={value!r}: expected one of {', '.join(SPEED_CONTROLS)} (or true / false)")
-    return str(value)
 
 
 @dataclass

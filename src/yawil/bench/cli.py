@@ -68,6 +68,8 @@ def _add_route_options(p: argparse.ArgumentParser | argparse._ArgumentGroup, act
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:  # type: ignore[type-arg]
+    from yawil.policy.speed import SPEED_CONTROLS
+
     p = subparsers.add_parser(
         "bench",
         help="run the CoRL2017 / NoCrash / square benchmark suites; manage route files",
@@ -122,7 +124,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--command-noise", default="burst-start", choices=("burst-start", "frame-share"),
                    help="reading of --command-noise-p: burst-start (default) a 5-frame burst starts with p on each "
                         "quiet frame; frame-share: a share p of all frames is wrong, in 5-frame bursts")
-    p.add_argument("--speed-control", nargs="?", const="target", default=False, choices=("target", "lead"),
+    p.add_argument("--speed-control", nargs="?", const="target", default=False, choices=SPEED_CONTROLS,
                    help="learned agents with an aux head: throttle and brake from its predicted target speed "
                         "(target, the default of the bare flag), or that speed capped by the expert's braking rule on "
                         "its predicted lead vehicle (lead); docs/training.md")

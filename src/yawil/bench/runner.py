@@ -24,6 +24,7 @@ from yawil.bench.records import PROTOCOL, EpisodeLog, check_run_info, episode_ke
 from yawil.bench.suites import Episode
 from yawil.executor import ExecutorConfig, for_worker, open_executor
 from yawil.locking import folder_lock
+from yawil.policy.speed import speed_control_mode
 from yawil.sim.types import Control, Observation, World
 
 EXPERT = "expert"
@@ -61,7 +62,8 @@ class AgentSpec:
         if self.command_noise_p:
             opts["command_noise_mode"] = self.command_noise_mode
         if self.speed_control:  # only when set, so the records of earlier runs still match ("target" stays True)
-            opts["speed_control"] = True if self.speed_control in (True, "target") else self.speed_control
+            mode = speed_control_mode(self.speed_control)
+            opts["speed_control"] = True if mode == "target" else mode
         if self.device != "cpu" and not self.is_expert:  # only when set, so the records of earlier runs still match
             opts["device"] = self.device
         if self.expert_args:  # the settings that differ from the default expert, by name
@@ -75,8 +77,7 @@ class AgentSpec:
             raise ValueError(f"--agent {self.agent!r}: expected 'expert' or the path of a checkpoint file")
         if self.is_expert and (self.yaw_noise_deg or self.command_noise_p or self.speed_control):
             raise ValueError("noise and speed-control options apply to learned agents, not to the expert")
-        if self.speed_control not in (False, True, "target", "lead"):
-            raise ValueError(f"--speed-control {self.speed_control!r}: expected target or lead")
+        speed_control_mode(self.speed_control)  # an unknown mode fails before the checkpoint is read
         if self.expert_args and not self.is_expert:
             raise ValueError("--expert-arg applies to --agent expert only")
         if self.device not in ("cpu", "cuda"):

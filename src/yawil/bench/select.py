@@ -21,6 +21,7 @@ from typing import Any
 import numpy as np
 
 from yawil.bench.suites import TASKS, Episode, RouteSpec, load_routes
+from yawil.policy.speed import SPEED_CONTROLS
 from yawil.sim.weather import TRAIN_WEATHERS
 
 VALIDATION_ROUTE_SEED = 101  # route draw of the validation set (the committed benchmark routes use seed 0)
@@ -125,7 +126,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="results folder: one sub-folder per candidate, selection.json")
     p.add_argument("--routes", type=int, default=3, help=f"routes per task of {', '.join(VALIDATION_TASKS)} (default 3)")
     p.add_argument("--workers", type=int, default=1, help="processes driving episodes (default 1)")
-    p.add_argument("--speed-control", nargs="?", const="target", default=False, choices=("target", "lead"),
+    p.add_argument("--speed-control", nargs="?", const="target", default=False, choices=SPEED_CONTROLS,
                    help="as yawil bench --speed-control")
     p.add_argument("--link", default=None, help="also make this path a hard link of the selected checkpoint")
     p.add_argument("--no-progress", action="store_true")

@@ -25,6 +25,7 @@ from yawil.bench.metrics import EpisodeTracker
 from yawil.bench.runner import AgentSpec, agent_device
 from yawil.bench.suites import Episode, episodes
 from yawil.fileio import write_atomic
+from yawil.policy.speed import SPEED_CONTROLS
 
 COLUMNS = ("time", "speed", "steer", "throttle", "brake", "agent_target_speed", "agent_lead_stop_m", "agent_lead_speed",
            "expert_steer", "expert_throttle", "expert_brake", "expert_target_speed", "expert_reason", "lead_stop_m",
@@ -110,7 +111,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--agent", required=True, help="a checkpoint (or 'expert': the expert shadowing itself)")
     p.add_argument("--out", required=True, help="the CSV file to write")
     p.add_argument("--suite", default="all", help="the suite the episode belongs to (default all)")
-    p.add_argument("--speed-control", nargs="?", const="target", default=False, choices=("target", "lead"),
+    p.add_argument("--speed-control", nargs="?", const="target", default=False, choices=SPEED_CONTROLS,
                    help="as yawil bench --speed-control")
     p.add_argument("--expert-arg", action="append", default=[], metavar="KEY=VALUE",
                    help="a setting of the shadowing expert's ExpertConfig (and of the agent, with --agent expert)")

@@ -48,6 +48,8 @@ _OPTIONS: tuple[tuple[str, str, Any, str], ...] = (
      "same (default: --loss) | l1 | mse | smooth_l1: criterion of the aux head's regression terms"),
     ("--brake-loss", "brake_loss", str,
      "same (default: the brake under --loss) | bce (binary cross-entropy of the brake output)"),
+    ("--ema", "ema", float,
+     "decay of a moving average of the weights that the checkpoints drive with, e.g. 0.995 (default 0: off)"),
     ("--init-from", "init_from", str, "start from the weights and normalisation of this yawil checkpoint (fine-tune)"),
     ("--keep-steps", "keep_steps", lambda t: _step_list(t),
      "comma-separated step counts whose checkpoints are kept as step_NNNNNN.pt (learning curves)"),

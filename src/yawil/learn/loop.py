@@ -33,6 +33,7 @@ from yawil.learn.artifacts import link_or_copy, plot_losses, write_metrics
 from yawil.learn.augment import augment_batch
 from yawil.learn.config import TrainConfig, auto_threads
 from yawil.learn.distributed import Dist
+from yawil.learn.ema import ema_state, make_ema, restore_ema
 from yawil.learn.loss import compute_loss
 from yawil.learn.resident import ResidentData, load_splits
 from yawil.learn.sampling import (
@@ -115,7 +116,7 @@ def _train(
     if resume:
         ckpt = load_checkpoint(out / "last.pt", map_location=runtime.device)
         check_resumable(ckpt["train_config"], cfg, out / "last.pt")
-        model.load_state_dict(ckpt["state_dict"])
+        model.load_state_dict(ckpt.get("raw_state_dict", ckpt["state_dict"]))  # with EMA, state_dict is the average
         norm = Norm.from_dict(ckpt["norm"])
     elif cfg.init_from is not None:
         init = load_checkpoint(cfg.init_from, map_location="cpu")
@@ -138,6 +139,12 @@ def _train(
     if runtime.channels_last:
         model.to(memory_format=torch.channels_last)  # type: ignore[call-arg]
     trainee = model if d is None else distributed.wrap(model, d, runtime.device)  # what the steps run
+    # With cfg.ema the checkpoints' state_dict (what drives and what validation measures) is the average
+    # (yawil.learn.ema); the weights the optimiser moves are kept beside it as raw_state_dict, for --resume.
+    ema = make_ema(model, cfg.ema) if cfg.ema > 0 else None
+    if ema is not None and ckpt is not None:
+        restore_ema(ema, ckpt["state_dict"], ckpt["ema"])
+    driven = model if ema is None else ema.module  # the weights a checkpoint drives with
     # foreach: one kernel per step for all tensors, measured 2x faster than the per-tensor loop on the CPU
     optimizer = torch.optim.Adam(model.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay, foreach=True)
     scheduler = torch.optim.lr_scheduler.StepLR(optimizer, step_size=cfg.lr_step_epochs, gamma=cfg.lr_gamma)
@@ -200,8 +207,11 @@ def _train(
             extra["rng_ranks"] = distributed.gather_objects(rng, d)
             if not d.main:
                 return
+        if ema is not None:
+            extra["raw_state_dict"] = {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}
+            extra["ema"] = ema_state(ema)
         save_checkpoint(make_checkpoint(
-            model, norm, guidance_config, cfg.to_dict(), pos.epoch, pos.step, metrics,
+            driven, norm, guidance_config, cfg.to_dict(), pos.epoch, pos.step, metrics,
             optimizer=optimizer.state_dict(),
             scheduler=scheduler.state_dict(),
             scaler=scaler.state_dict(),
@@ -221,7 +231,7 @@ def _train(
         split the metrics' validation columns are NaN and best.pt follows last.pt."""
         val = None
         if main:
-            val = validate(model, val_loader, norm, kind, cfg, runtime) if len(val_ds) else dict.fromkeys(VAL_KEYS, math.nan)
+            val = validate(driven, val_loader, norm, kind, cfg, runtime) if len(val_ds) else dict.fromkeys(VAL_KEYS, math.nan)
         if d is not None:
             val = distributed.broadcast_object(val, d)  # every rank keeps the same metrics and best_val
         assert val is not None
@@ -254,7 +264,10 @@ def _train(
     keep_at = set(cfg.keep_steps)
 
     def keep(step: int) -> None:
-        """The checkpoint after `step` steps, kept apart (its position resumes mid-epoch like last.pt)."""
+        """After step `step`: the average moves, and the checkpoint is kept apart when asked for (its position
+        resumes mid-epoch like last.pt)."""
+        if ema is not None:
+            ema.update_parameters(model)
         if step in keep_at:
             save(out / f"step_{step:06d}.pt")
 

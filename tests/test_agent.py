@@ -193,3 +193,30 @@ def test_hazard_speed_is_the_experts_braking_rule() -> None:
     assert hazard_speed(0.0, 0.0, 2.0) == 0.0
     assert hazard_speed(10.0, 3.0, 2.0) == pytest.approx(min(math.sqrt(9.0 + 40.0), 3.0 + 5.0))  # settle behind
     assert hazard_speed(-2.0, 3.0, 2.0) == pytest.approx(2.0)  # too close behind a mover: slower than it
+
+
+def test_stop_speed_control_stops_while_the_lead_stop_output_fires(tiny_checkpoint: Any) -> None:
+    """speed_control="stop": the target speed is 0 while P(standing vehicle close ahead) > 0.5, else the
+    head's own; refused for a model without the lead-stop output."""
+    path, _ = tiny_checkpoint("yaw-guided", guidance=GC, spread=True, guidance_dim=K, dropout=0.0, aux=True,
+                              lead_stop=True)
+    target = Agent.from_checkpoint(path, precision="fp32", speed_control="target")
+    stop = Agent.from_checkpoint(path, precision="fp32", speed_control="stop")
+    obs = observation(speed=3.0)
+    for logit, fires in ((4.0, True), (-4.0, False)):
+        for agent in (target, stop):
+            last = [m for m in agent.model.aux_head.modules() if isinstance(m, torch.nn.Linear)][-1]
+            with torch.no_grad():
+                last.weight[4].zero_()
+                last.bias[4] = logit
+            agent.reset()
+            control = agent.act(obs)
+        a, b = target.last, stop.last
+        assert a is not None and b is not None and b.lead_stop is not None and a.target_speed is not None
+        assert b.lead_stop == pytest.approx(float(torch.sigmoid(torch.tensor(logit))))
+        assert b.target_speed == (0.0 if fires else pytest.approx(a.target_speed))
+        if fires:
+            assert control.throttle == 0.0 and control.brake > 0.5  # at 3 m/s towards a target of 0
+    plain, _ = tiny_checkpoint("yaw-guided", guidance=GC, spread=True, guidance_dim=K, dropout=0.0, aux=True)
+    with pytest.raises(ValueError, match="lead_stop=true"):
+        Agent.from_checkpoint(plain, speed_control="stop")

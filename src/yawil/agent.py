@@ -24,6 +24,7 @@ import torch
 from yawil.data.schema import LEAD_RANGE
 from yawil.expert import ExpertConfig, hazard_speed
 from yawil.guidance import COMMAND_NOISE_MODES, YAW_NOISE_MODES, CommandNoise, GuidanceConfig
+from yawil.models.base import AUX_NAMES
 from yawil.policy.checkpoint import Norm, load_checkpoint, model_from_checkpoint
 from yawil.policy.inputs import (
     InputSpec,
@@ -127,6 +128,7 @@ class StepOutput:
     target_speed: float | None = None  # m/s, from the aux head (models built with aux=true), after any "lead" cap
     lead_distance: float | None = None  # m to the lead vehicle's stop point, from the aux head
     lead_speed: float | None = None  # m/s of the lead vehicle, from the aux head
+    lead_stop: float | None = None  # probability of a standing vehicle close ahead (models built with lead_stop=true)
 
 
 class Agent:
@@ -179,6 +181,9 @@ class Agent:
         self.speed_mode = speed_control_mode(speed_control)
         if self.speed_mode is not None and getattr(model, "aux_head", None) is None:
             raise ValueError(f"speed_control needs a model with an aux head (trained with --model-arg aux=true); "
+                             f"{getattr(model, 'name', type(model).__name__)} has none")
+        if self.speed_mode == "stop" and not getattr(model, "lead_stop", False):
+            raise ValueError(f"speed_control 'stop' needs a model with the lead-stop output (--model-arg lead_stop=true); "
                              f"{getattr(model, 'name', type(model).__name__)} has none")
         self.speed_control: SpeedControl | None = SpeedControl() if self.speed_mode is not None else None
         self.yaw_noise_deg = float(yaw_noise_deg)
@@ -269,7 +274,7 @@ class Agent:
             out = x.forward(self.model)
         actions = out.actions[0].float().cpu().numpy()
         speed = float(self.norm.speed_inverse(out.speed[0, 0].float()).cpu())
-        target_speed = lead_distance = lead_speed = None
+        target_speed = lead_distance = lead_speed = lead_stop = None
         if out.aux is not None:
             aux = out.aux[0].float().cpu()
             target_speed = max(0.0, float(self.norm.speed_inverse(aux[0])))
@@ -277,6 +282,10 @@ class Agent:
             lead_speed = max(0.0, float(self.norm.speed_inverse(aux[2])))
             if self.speed_mode == "lead" and lead_distance < LEAD_SEEN:
                 target_speed = min(target_speed, hazard_speed(lead_distance, lead_speed, LEAD_DECEL))
+            if len(aux) > len(AUX_NAMES):
+                lead_stop = float(torch.sigmoid(aux[len(AUX_NAMES)]))
+                if self.speed_mode == "stop" and lead_stop > 0.5:
+                    target_speed = 0.0
         if self.speed_control is not None and target_speed is not None:
             throttle, brake = self.speed_control(target_speed, max(float(obs.speed), 0.0))
             actions = np.array([actions[0], throttle, brake], dtype=np.float32)
@@ -292,5 +301,6 @@ class Agent:
             target_speed=target_speed,
             lead_distance=lead_distance,
             lead_speed=lead_speed,
+            lead_stop=lead_stop,
         )
         return control

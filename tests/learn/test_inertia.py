@@ -191,3 +191,30 @@ def test_aux_loss_option_sets_the_criterion_of_the_aux_regressions() -> None:
     mse = float(compute_loss(Head(), batch, TrainConfig(**base, aux_loss="mse"), norm)[0])  # type: ignore[arg-type]
     same_mse = float(compute_loss(Head(), batch, TrainConfig(**base, loss="mse"), norm)[0])  # type: ignore[arg-type]
     assert mse != pytest.approx(l1) and mse == pytest.approx(same_mse)  # actions and speed are 0 = their targets
+
+
+@pytest.mark.parametrize("name", ["yilratt", "yaw-guided"])
+def test_lead_stop_output_widens_the_aux_head(name: str) -> None:
+    image, speed, guide = _inputs()
+    out = _yilratt(name, aux=True, lead_stop=True).eval()(image, speed, guidance=guide)
+    assert out.aux is not None and tuple(out.aux.shape) == (2, len(models.base.AUX_NAMES) + 1)
+    with pytest.raises(ValueError, match="aux=true"):
+        _yilratt(name, lead_stop=True)
+
+
+def test_lead_stop_labels_and_their_weighted_cross_entropy() -> None:
+    from yawil.learn.loss import LEAD_STOP_POS_WEIGHT, aux_targets, lead_stop_targets
+
+    nan = math.nan
+    # target speed, lead distance, lead speed, light: a standing car 5 m ahead; a moving one; one far; unknown
+    privileged = torch.tensor([[0.0, 5.0, 0.0, 0.0], [4.0, 5.0, 5.0, 0.0], [4.0, 30.0, 0.0, 0.0], [4.0, nan, nan, -1.0]])
+    close, seen = lead_stop_targets(privileged)
+    assert close.tolist() == [1.0, 0.0, 0.0, 0.0] and seen.tolist() == [True, True, True, False]
+    norm = Norm(speed_mean=2.0, speed_std=2.0, guidance_mean=[0.0] * K, guidance_std=[1.0] * K)
+    aux = torch.randn(4, 5, generator=torch.Generator().manual_seed(3))
+    four, five = float(aux_loss(aux[:, :4], privileged, norm)), float(aux_loss(aux, privileged, norm))
+    count = float(aux_targets(privileged, norm)[1].sum())
+    p = torch.sigmoid(aux[:3, 4])
+    y = close[:3]
+    bce = -(LEAD_STOP_POS_WEIGHT * y * p.log() + (1 - y) * (1 - p).log())
+    assert five * (count + 3) == pytest.approx(four * count + float(bce.sum()), rel=1e-5)

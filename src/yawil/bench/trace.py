@@ -29,7 +29,7 @@ from yawil.policy.speed import SPEED_CONTROLS
 
 COLUMNS = ("time", "speed", "steer", "throttle", "brake", "agent_target_speed", "agent_lead_stop_m", "agent_lead_speed",
            "expert_steer", "expert_throttle", "expert_brake", "expert_target_speed", "expert_reason", "lead_stop_m",
-           "lead_speed")
+           "lead_speed", "agent_lead_stop_p")
 
 
 @dataclass(frozen=True)
@@ -80,7 +80,8 @@ def trace_episode(ep: Episode, spec: AgentSpec, out: str | os.PathLike[str], exp
             lead = min(leads, key=lambda h: h.distance) if leads else None
             control = agent.act(obs)
             last = getattr(agent, "last", None)
-            target, a_lead, a_lead_v = (getattr(last, k, None) for k in ("target_speed", "lead_distance", "lead_speed"))
+            target, a_lead, a_lead_v, a_stop = (getattr(last, k, None) for k in
+                                                ("target_speed", "lead_distance", "lead_speed", "lead_stop"))
             rows.append([
                 round(obs.time, 2), round(obs.speed, 3), round(control.steer, 4), round(control.throttle, 4),
                 round(control.brake, 4), "" if target is None else round(target, 3),
@@ -88,6 +89,7 @@ def trace_episode(ep: Episode, spec: AgentSpec, out: str | os.PathLike[str], exp
                 round(shadow.steer, 4),
                 round(shadow.throttle, 4), round(shadow.brake, 4), round(st.target_speed, 3), st.reason,
                 "" if lead is None else round(lead.distance, 2), "" if lead is None else round(lead.speed, 2),
+                "" if a_stop is None else round(a_stop, 3),
             ])
             obs = world.step(control)
             if tracker.update(obs):

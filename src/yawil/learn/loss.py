@@ -10,6 +10,7 @@ from torch import Tensor
 
 from yawil.learn.config import TrainConfig
 from yawil.learn.sampling import Batch
+from yawil.models.base import AUX_NAMES, LEAD_STOP_DISTANCE, LEAD_STOP_SPEED
 from yawil.policy.checkpoint import Norm
 
 
@@ -71,11 +72,32 @@ def aux_targets(privileged: Tensor, norm: Norm) -> tuple[Tensor, Tensor]:
     return torch.where(known, target, torch.zeros_like(target)), known
 
 
+# Weight of the positive frames in the lead-stop cross-entropy: about 3 % of town01's frames are positive, so
+# unweighted the head's cheapest answer is "never"; 10 makes a missed standing car cost what ten false alarms do.
+LEAD_STOP_POS_WEIGHT = 10.0
+
+
+def lead_stop_targets(privileged: Tensor) -> tuple[Tensor, Tensor]:
+    """(1 where a vehicle under LEAD_STOP_SPEED is within LEAD_STOP_DISTANCE ahead, mask of known), both [B]."""
+    ld, ls = privileged[:, 1], privileged[:, 2]
+    known = ld.isfinite() & ls.isfinite()
+    close = known & (ld < LEAD_STOP_DISTANCE) & (ls < LEAD_STOP_SPEED)
+    return close.float(), known
+
+
 def aux_loss(aux: Tensor, privileged: Tensor, norm: Norm, loss: str = "l1") -> Tensor:
-    """Mean over the known labels: regression terms with the action loss's criterion, BCE for the light."""
+    """Mean over the known labels: regression terms with the action loss's criterion, BCE for the light and,
+    for heads with the lead-stop output (models.base.aux_outputs), weighted BCE for it."""
     target, known = aux_targets(privileged, norm)
     crit = _criterion(loss)
     w = known.float()
     reg = crit(aux[:, :3], target[:, :3], reduction="none") * w[:, :3]
     bce = torch.nn.functional.binary_cross_entropy_with_logits(aux[:, 3], target[:, 3], reduction="none") * w[:, 3]
-    return (reg.sum() + bce.sum()) / w.sum().clamp_min(1.0)
+    total, count = reg.sum() + bce.sum(), w.sum()
+    if aux.shape[1] > len(AUX_NAMES):
+        close, seen = lead_stop_targets(privileged)
+        stop = torch.nn.functional.binary_cross_entropy_with_logits(
+            aux[:, len(AUX_NAMES)], close, reduction="none",
+            pos_weight=torch.tensor(LEAD_STOP_POS_WEIGHT, device=aux.device))  # fmt: skip
+        total, count = total + (stop * seen.float()).sum(), count + seen.float().sum()
+    return total / count.clamp_min(1.0)

@@ -33,6 +33,22 @@ class ModelOutput(NamedTuple):
 # to the stop point behind the lead vehicle (/ LEAD_RANGE, the dataset's "none" value) and a logit of
 # "a red or yellow stop line is near" (docs/training.md, "Inertia countermeasures").
 AUX_NAMES: tuple[str, ...] = ("target_speed", "lead_distance", "lead_speed", "light_ahead")
+# With `lead_stop=true` (ours) one more aux output: a logit of "a vehicle standing or nearly (under
+# LEAD_STOP_SPEED) is within LEAD_STOP_DISTANCE ahead", learnt by class-weighted cross-entropy. Why: the lead
+# distance regression never learnt to see cars at these budgets (docs/experiments.md, 2026-12-02); a rare
+# binary event is what a weighted classification loss learns (TransFuser++'s brake class).
+LEAD_STOP_DISTANCE = 12.0  # m, the dataset's lead_distance (front bumper to the vehicle followed)
+LEAD_STOP_SPEED = 2.0  # m/s, the lead vehicle's speed
+
+
+def aux_outputs(aux: bool, lead_stop: bool) -> int:
+    """Width of the aux head: AUX_NAMES, then the lead-stop logit; refuses lead_stop without aux."""
+    for name, v in (("aux", aux), ("lead_stop", lead_stop)):
+        if not isinstance(v, bool):
+            raise ValueError(f"{name}: expected true or false, got {v!r}")
+    if lead_stop and not aux:
+        raise ValueError("lead_stop=true is an output of the aux head: build the model with aux=true too")
+    return (len(AUX_NAMES) + int(lead_stop)) if aux else 0
 
 
 def squash_actions(raw: Tensor) -> Tensor:

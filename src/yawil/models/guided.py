@@ -17,7 +17,7 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
-from yawil.models.base import AUX_NAMES, DrivingModel, ModelOutput, resolve_guidance, squash_actions
+from yawil.models.base import DrivingModel, ModelOutput, aux_outputs, resolve_guidance, squash_actions
 from yawil.models.cil import CILPerception
 from yawil.models.layers import fc_relu, head
 from yawil.models.registry import register
@@ -37,6 +37,7 @@ class GuidedIL(DrivingModel):
         conv_dropout: float = 0.0,
         speed_input: bool = True,
         aux: bool = False,
+        lead_stop: bool = False,
     ) -> None:
         """`speed_input` and `aux`: the inertia variants of YILRatt (docs/training.md), so that a recipe can be
         compared on the cheap baseline and on YILRatt the same way."""
@@ -51,7 +52,9 @@ class GuidedIL(DrivingModel):
         self.join = fc_relu(self.perception.out_dim + 128, (512,))
         self.action = head(512, (256, 256), 3, dropout)
         self.speed_head = head(self.perception.out_dim, (256, 256), 1, dropout)
-        self.aux_head = head(512, (256,), len(AUX_NAMES), dropout) if aux else None
+        n_aux = aux_outputs(aux, lead_stop)
+        self.lead_stop = lead_stop
+        self.aux_head = head(512, (256,), n_aux, dropout) if n_aux else None
 
     def forward(
         self, image: Tensor, speed: Tensor, guidance: Tensor | None = None, command: Tensor | None = None
@@ -75,25 +78,25 @@ class GuidedIL(DrivingModel):
 @register("yaw-guided")
 def yaw_guided(
     guidance_dim: int = 15, image_size: Sequence[int] = (88, 200), dropout: float = 0.5, conv_dropout: float = 0.0,
-    speed_input: bool = True, aux: bool = False,
+    speed_input: bool = True, aux: bool = False, lead_stop: bool = False,
 ) -> GuidedIL:
     """Yaw-guided IL: guidance = route yaws relative to the first one."""
-    return GuidedIL("yaw", guidance_dim, image_size, dropout, conv_dropout, speed_input, aux)
+    return GuidedIL("yaw", guidance_dim, image_size, dropout, conv_dropout, speed_input, aux, lead_stop)
 
 
 @register("xy-guided")
 def xy_guided(
     guidance_dim: int = 30, image_size: Sequence[int] = (88, 200), dropout: float = 0.5, conv_dropout: float = 0.0,
-    speed_input: bool = True, aux: bool = False,
+    speed_input: bool = True, aux: bool = False, lead_stop: bool = False,
 ) -> GuidedIL:
     """XY-guided IL: guidance = absolute waypoint coordinates scaled by the map bounds."""
-    return GuidedIL("xy", guidance_dim, image_size, dropout, conv_dropout, speed_input, aux)
+    return GuidedIL("xy", guidance_dim, image_size, dropout, conv_dropout, speed_input, aux, lead_stop)
 
 
 @register("simyaw-guided")
 def simyaw_guided(
     guidance_dim: int = 15, image_size: Sequence[int] = (88, 200), dropout: float = 0.5, conv_dropout: float = 0.0,
-    speed_input: bool = True, aux: bool = False,
+    speed_input: bool = True, aux: bool = False, lead_stop: bool = False,
 ) -> GuidedIL:
     """Simulator-yaw IL ("Carla-yaw IL"): guidance = lane headings reported by the simulator's map."""
-    return GuidedIL("sim_yaw", guidance_dim, image_size, dropout, conv_dropout, speed_input, aux)
+    return GuidedIL("sim_yaw", guidance_dim, image_size, dropout, conv_dropout, speed_input, aux, lead_stop)

@@ -13,7 +13,7 @@ from pathlib import Path
 import torch
 from torch import Tensor, nn
 
-from yawil.models.base import AUX_NAMES, DrivingModel, ModelOutput, resolve_guidance, squash_actions
+from yawil.models.base import DrivingModel, ModelOutput, aux_outputs, resolve_guidance, squash_actions
 from yawil.models.layers import LinearAttention, fc_relu, head
 from yawil.models.registry import register
 from yawil.models.resnet import STAGE_CHANNELS, build_resnet34, load_imagenet_weights, resnet_stages
@@ -24,7 +24,8 @@ class YILRatt(DrivingModel):
     """Yaw-guided imitation learning with ResNet34 and attention (the paper's Figure 2)."""
 
     def __init__(self, guidance: str = "yaw", guidance_dim: int | None = None, dropout: float = 0.5,
-                 compute_global: bool = False, speed_input: bool = True, aux: bool = False) -> None:
+                 compute_global: bool = False, speed_input: bool = True, aux: bool = False,
+                 lead_stop: bool = False) -> None:
         """`compute_global`: run layer4 and add g to the compatibility as the paper writes it. Off by default:
         <u, g> is the same at every position and cancels in the softmax, so the outputs are the same up to
         float rounding and layer4 (about a fifth of the backbone's time) is skipped (docs/models.md).
@@ -32,7 +33,7 @@ class YILRatt(DrivingModel):
         Variants (not the paper's; docs/training.md, "Inertia countermeasures"): `speed_input=False` feeds
         the measurement layer a zero speed (the inputs stay the same, so agent and export need no change);
         `aux=True` adds a head on the joined features predicting AUX_NAMES (the expert's target speed, the
-        lead vehicle, a light ahead)."""
+        lead vehicle, a light ahead); `lead_stop=True` one more, the logit of a standing vehicle close ahead."""
         super().__init__(guidance=guidance, guidance_dim=resolve_guidance(guidance, guidance_dim), uses_command=False)
         for name, v in (("compute_global", compute_global), ("speed_input", speed_input), ("aux", aux)):
             if not isinstance(v, bool):
@@ -47,7 +48,9 @@ class YILRatt(DrivingModel):
         self.join = fc_relu(feat_dim + 128, (512,))
         self.action = head(512, (256, 256), 3, dropout)
         self.speed_head = head(feat_dim, (256, 256), 1, dropout)
-        self.aux_head = head(512, (256,), len(AUX_NAMES), dropout) if aux else None
+        n_aux = aux_outputs(aux, lead_stop)
+        self.lead_stop = lead_stop
+        self.aux_head = head(512, (256,), n_aux, dropout) if n_aux else None
 
     def perceive(self, image: Tensor) -> tuple[Tensor, list[Tensor]]:
         """Concatenated attended vectors P(o) [B, 1536] and the three attention maps."""

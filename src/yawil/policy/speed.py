@@ -2,12 +2,14 @@
 lines and the benchmark's records can use the names; the controllers themselves are in `yawil.agent`.
 
 None: the network's own throttle and brake; "target": a PI controller on the aux head's target speed;
-"lead": the same with the target capped by the expert's braking rule on the aux head's predicted lead vehicle.
+"lead": the same with the target capped by the expert's braking rule on the aux head's predicted lead vehicle;
+"stop": the same with the target set to 0 while the lead-stop output (a model built with lead_stop=true) says a
+standing vehicle is close ahead (probability over 0.5).
 """
 
 from __future__ import annotations
 
-SPEED_CONTROLS: tuple[str, ...] = ("target", "lead")
+SPEED_CONTROLS: tuple[str, ...] = ("target", "lead", "stop")
 
 
 def speed_control_mode(value: bool | str | None) -> str | None:

@@ -148,6 +148,10 @@ def test_dagger_config_is_checked() -> None:
     with pytest.raises(ValueError, match="aux head"):
         DaggerConfig(speed_control=True)  # the target speed comes from the aux head
     assert DaggerConfig(speed_control=True, train_args={"model_args": {"aux": True}, "aux_weight": 0.5}).speed_control
+    aux_args = {"model_args": {"aux": True, "lead_stop": True}, "aux_weight": 0.5}
+    assert DaggerConfig(speed_control="stop", train_args=aux_args).speed_control == "stop"
+    with pytest.raises(ValueError, match="speed_control"):
+        DaggerConfig(speed_control="brake", train_args=aux_args)
     assert DaggerConfig(expert_args={"comfort_decel": 1.0}).expert_config().comfort_decel == 1.0
     with pytest.raises(ValueError, match="unknown expert setting"):
         DaggerConfig(expert_args={"softly": 1.0})

@@ -127,7 +127,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--speed-control", nargs="?", const="target", default=False, choices=SPEED_CONTROLS,
                    help="learned agents with an aux head: throttle and brake from its predicted target speed "
                         "(target, the default of the bare flag), or that speed capped by the expert's braking rule on "
-                        "its predicted lead vehicle (lead); docs/training.md")
+                        "its predicted lead vehicle (lead), or that speed set to 0 while its lead-stop output fires (stop; models "
+                        "built with lead_stop=true); docs/training.md")
     p.add_argument("--expert-arg", action="append", default=[], metavar="KEY=VALUE",
                    help="--agent expert: a setting of its ExpertConfig (docs/expert.md), e.g. comfort_decel=1.5; "
                         "repeat for more")

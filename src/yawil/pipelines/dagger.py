@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import Any
 
 from yawil.executor import ExecutorConfig, add_executor_arguments, executor_from_args
+from yawil.policy.speed import SPEED_CONTROLS
 from yawil.stages import read_marker, run_stage
 
 TRAIN_MODES = ("finetune", "scratch")
@@ -66,7 +67,8 @@ class DaggerConfig:
     train_args: dict[str, Any] = field(default_factory=dict)  # further TrainConfig settings (speed_dropout, ...)
     round0: str | None = None  # an existing round-0 checkpoint (then expert_data must be its data)
     expert_data: str | None = None  # an existing expert dataset instead of collecting one
-    speed_control: bool = False  # the learner drives throttle and brake from its aux head's target speed (as benched)
+    # the learner drives throttle and brake from its aux head (as benched): True/"target", "lead" or "stop"
+    speed_control: bool | str = False
     expert_args: dict[str, float] = field(default_factory=dict)  # ExpertConfig settings of the expert (labels, takeovers)
 
     def __post_init__(self) -> None:
@@ -84,7 +86,8 @@ class DaggerConfig:
         need(self.round0 is None or self.expert_data is not None, "round0", "given together with --expert-data")
         need(self.lr > 0 and math.isfinite(self.lr), "lr", "a number > 0")
         need(isinstance(self.train_args, dict), "train_args", "a mapping of train settings")
-        need(isinstance(self.speed_control, bool), "speed_control", "true or false")
+        need(isinstance(self.speed_control, bool) or self.speed_control in SPEED_CONTROLS, "speed_control",
+             f"true, false or one of {', '.join(SPEED_CONTROLS)}")
         need(isinstance(self.expert_args, dict), "expert_args", "a mapping of ExpertConfig settings")
         self.expert_config()  # an unknown or invalid expert setting fails here
         self.executor_config()  # and an unknown executor
@@ -113,7 +116,7 @@ def _is_int(v: Any) -> bool:
     return isinstance(v, int) and not isinstance(v, bool)
 
 
-def load_learner(checkpoint: str, threads: int = 1, speed_control: bool = False) -> Any:
+def load_learner(checkpoint: str, threads: int = 1, speed_control: bool | str = False) -> Any:
     """The learner of a collection process: the checkpoint's agent on the CPU, with `threads` torch threads,
     driving as it will be benchmarked (`speed_control`: throttle and brake from its target speed), so that the
     states it visits are the ones the benchmark will see."""
@@ -291,8 +294,9 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                    help="a further train setting (JSON value), e.g. --train-arg speed_dropout=0.3")
     p.add_argument("--round0", default=None, help="use this checkpoint as the round-0 policy (with --expert-data)")
     p.add_argument("--expert-data", default=None, help="use this expert dataset as round 0's data")
-    p.add_argument("--speed-control", action="store_true",
-                   help="the learner drives throttle and brake through its aux head's target speed (bench --speed-control)")
+    p.add_argument("--speed-control", nargs="?", const="target", default=False, choices=SPEED_CONTROLS,
+                   help="the learner drives throttle and brake through its aux head as `yawil bench --speed-control` "
+                        "does: target (the bare flag), lead or stop")
     p.add_argument("--expert-arg", action="append", default=[], metavar="KEY=VALUE",
                    help="a setting of the expert's ExpertConfig for its data, labels and takeovers (as yawil collect)")
     p.add_argument("--no-progress", action="store_true")

@@ -24,7 +24,7 @@ import torch
 from yawil.data.schema import LEAD_RANGE
 from yawil.expert import ExpertConfig, hazard_speed
 from yawil.guidance import COMMAND_NOISE_MODES, YAW_NOISE_MODES, CommandNoise, GuidanceConfig
-from yawil.models.base import AUX_NAMES
+from yawil.models.base import AUX_NAMES, LEAD_STOP_FIRES
 from yawil.policy.checkpoint import Norm, load_checkpoint, model_from_checkpoint
 from yawil.policy.inputs import (
     InputSpec,
@@ -284,7 +284,7 @@ class Agent:
                 target_speed = min(target_speed, hazard_speed(lead_distance, lead_speed, LEAD_DECEL))
             if len(aux) > len(AUX_NAMES):
                 lead_stop = float(torch.sigmoid(aux[len(AUX_NAMES)]))
-                if self.speed_mode == "stop" and lead_stop > 0.5:
+                if self.speed_mode == "stop" and lead_stop > LEAD_STOP_FIRES:
                     target_speed = 0.0
         if self.speed_control is not None and target_speed is not None:
             throttle, brake = self.speed_control(target_speed, max(float(obs.speed), 0.0))

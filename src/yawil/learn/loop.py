@@ -51,7 +51,7 @@ from yawil.learn.setup import build_model, check_resumable, make_loader, open_sp
 from yawil.learn.state import Position, rng_states, seed_globals, set_rng_states
 from yawil.learn.stop import STOP, StopRequested, check_stop, stop_between_steps
 from yawil.learn.validate import VAL_KEYS, validate
-from yawil.policy.checkpoint import Norm, load_checkpoint, make_checkpoint, save_checkpoint
+from yawil.policy.checkpoint import Norm, cpu_state_dict, load_checkpoint, make_checkpoint, save_checkpoint
 from yawil.policy.runtime import Runtime, resolve_runtime
 
 
@@ -208,7 +208,7 @@ def _train(
             if not d.main:
                 return
         if ema is not None:
-            extra["raw_state_dict"] = {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}
+            extra["raw_state_dict"] = cpu_state_dict(model)
             extra["ema"] = ema_state(ema)
         save_checkpoint(make_checkpoint(
             driven, norm, guidance_config, cfg.to_dict(), pos.epoch, pos.step, metrics,
@@ -263,7 +263,7 @@ def _train(
 
     keep_at = set(cfg.keep_steps)
 
-    def keep(step: int) -> None:
+    def after_step(step: int) -> None:
         """After step `step`: the average moves, and the checkpoint is kept apart when asked for (its position
         resumes mid-epoch like last.pt)."""
         if ema is not None:
@@ -300,7 +300,7 @@ def _train(
         try:
             with stop_between_steps(announce=main):
                 stop = _train_epoch(trainee, loader, optimizer, scaler, norm, kind, uses_command, cfg, runtime, pos,
-                                    writer, bar, started, keep, d, sizes)
+                                    writer, bar, started, after_step, d, sizes)
         except StopRequested:
             # Ctrl-C or SIGTERM, taken between two steps: the state saved is exactly that after pos.step steps,
             # so --resume gives the weights of an uninterrupted run
@@ -346,7 +346,7 @@ def _train(
 def _train_epoch(
     model: Any, loader: Any, optimizer: torch.optim.Optimizer, scaler: torch.amp.GradScaler, norm: Norm,
     kind: str | None, uses_command: bool, cfg: TrainConfig, runtime: Runtime, pos: Position, writer: Any,
-    bar: Any, started: float, keep: Callable[[int], None] | None = None, d: Dist | None = None,
+    bar: Any, started: float, after_step: Callable[[int], None] | None = None, d: Dist | None = None,
     sizes: Sequence[int] | None = None,
 ) -> str | None:  # fmt: skip
     """Run the rest of the current epoch; return the name of the budget that stopped it, or None.
@@ -388,8 +388,8 @@ def _train_epoch(
         pos.batch += 1
         pos.loss_sum += value * size
         pos.samples += size
-        if keep is not None:
-            keep(pos.step)
+        if after_step is not None:
+            after_step(pos.step)
         bar.update(1)
         bar.set_postfix(loss=f"{value:.4f}", sps=f"{pos.samples / max(pos.seconds, 1e-9):.0f}")
         if pos.step % cfg.log_every == 0:

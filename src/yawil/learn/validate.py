@@ -10,7 +10,7 @@ import torch
 from yawil.learn.config import TrainConfig
 from yawil.learn.loss import compute_loss, lead_stop_targets
 from yawil.learn.sampling import BRAKE_LABEL, BRAKE_MIN_SPEED, prepare_batch
-from yawil.models.base import AUX_NAMES
+from yawil.models.base import AUX_NAMES, LEAD_STOP_FIRES
 from yawil.policy.checkpoint import Norm
 from yawil.policy.runtime import Runtime
 
@@ -59,7 +59,7 @@ def validate(
             stops_seen += int((stop & (guess < STOP_TARGET)).sum())
             if out.aux.shape[1] > len(AUX_NAMES):
                 close, seen = lead_stop_targets(b.privileged)
-                fired = seen & (out.aux[:, len(AUX_NAMES)].float() > 0.0)  # probability over 0.5
+                fired = seen & (torch.sigmoid(out.aux[:, len(AUX_NAMES)].float()) > LEAD_STOP_FIRES)
                 close_n += int(close.sum())
                 close_hit += int((fired & (close > 0)).sum())
                 close_said += int(fired.sum())

@@ -39,6 +39,7 @@ AUX_NAMES: tuple[str, ...] = ("target_speed", "lead_distance", "lead_speed", "li
 # binary event is what a weighted classification loss learns (TransFuser++'s brake class).
 LEAD_STOP_DISTANCE = 12.0  # m, the dataset's lead_distance (front bumper to the vehicle followed)
 LEAD_STOP_SPEED = 2.0  # m/s, the lead vehicle's speed
+LEAD_STOP_FIRES = 0.5  # probability over which the output counts as "yes" (validation, `--speed-control stop`)
 
 
 def aux_outputs(aux: bool, lead_stop: bool) -> int:

@@ -42,9 +42,8 @@ class GuidedIL(DrivingModel):
         """`speed_input` and `aux`: the inertia variants of YILRatt (docs/training.md), so that a recipe can be
         compared on the cheap baseline and on YILRatt the same way."""
         super().__init__(guidance=guidance, guidance_dim=resolve_guidance(guidance, guidance_dim), uses_command=False)
-        for name, v in (("speed_input", speed_input), ("aux", aux)):
-            if not isinstance(v, bool):
-                raise ValueError(f"{name}: expected true or false, got {v!r}")
+        if not isinstance(speed_input, bool):  # aux and lead_stop: aux_outputs checks them
+            raise ValueError(f"speed_input: expected true or false, got {speed_input!r}")
         self.name = NAMES[guidance]
         self.speed_input = speed_input
         self.perception = CILPerception(image_size, conv_dropout)

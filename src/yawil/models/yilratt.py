@@ -35,7 +35,7 @@ class YILRatt(DrivingModel):
         `aux=True` adds a head on the joined features predicting AUX_NAMES (the expert's target speed, the
         lead vehicle, a light ahead); `lead_stop=True` one more, the logit of a standing vehicle close ahead."""
         super().__init__(guidance=guidance, guidance_dim=resolve_guidance(guidance, guidance_dim), uses_command=False)
-        for name, v in (("compute_global", compute_global), ("speed_input", speed_input), ("aux", aux)):
+        for name, v in (("compute_global", compute_global), ("speed_input", speed_input)):  # aux: aux_outputs
             if not isinstance(v, bool):
                 raise ValueError(f"{name}: expected true or false, got {v!r}")
         self.compute_global = compute_global

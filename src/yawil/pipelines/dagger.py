@@ -29,7 +29,7 @@ from pathlib import Path
 from typing import Any
 
 from yawil.executor import ExecutorConfig, add_executor_arguments, executor_from_args
-from yawil.policy.speed import SPEED_CONTROLS
+from yawil.policy.speed import SPEED_CONTROLS, speed_control_mode
 from yawil.stages import read_marker, run_stage
 
 TRAIN_MODES = ("finetune", "scratch")
@@ -86,8 +86,10 @@ class DaggerConfig:
         need(self.round0 is None or self.expert_data is not None, "round0", "given together with --expert-data")
         need(self.lr > 0 and math.isfinite(self.lr), "lr", "a number > 0")
         need(isinstance(self.train_args, dict), "train_args", "a mapping of train settings")
-        need(isinstance(self.speed_control, bool) or self.speed_control in SPEED_CONTROLS, "speed_control",
-             f"true, false or one of {', '.join(SPEED_CONTROLS)}")
+        try:
+            speed_control_mode(self.speed_control)
+        except ValueError:
+            need(False, "speed_control", f"true, false or one of {', '.join(SPEED_CONTROLS)}")
         need(isinstance(self.expert_args, dict), "expert_args", "a mapping of ExpertConfig settings")
         self.expert_config()  # an unknown or invalid expert setting fails here
         self.executor_config()  # and an unknown executor

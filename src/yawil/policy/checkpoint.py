@@ -131,7 +131,7 @@ def make_checkpoint(
         "yawil_version": __version__,
         "model_name": str(model.name),
         "model_config": dict(model.config),
-        "state_dict": {k: v.detach().cpu().clone() for k, v in model.state_dict().items()},
+        "state_dict": cpu_state_dict(model),
         "norm": norm.to_dict(),
         "guidance_config": dict(guidance_config),
         "guidance_kind": getattr(model, "guidance", None),
@@ -141,6 +141,11 @@ def make_checkpoint(
         "metrics": list(metrics or []),
         **extra,
     }
+
+
+def cpu_state_dict(model: torch.nn.Module) -> dict[str, torch.Tensor]:
+    """A copy of the module's weights and buffers on the CPU, as checkpoints store them."""
+    return {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}
 
 
 def save_checkpoint(ckpt: dict[str, Any], path: str | os.PathLike[str]) -> Path:

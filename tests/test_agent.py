@@ -220,3 +220,53 @@ def test_stop_speed_control_stops_while_the_lead_stop_output_fires(tiny_checkpoi
     plain, _ = tiny_checkpoint("yaw-guided", guidance=GC, spread=True, guidance_dim=K, dropout=0.0, aux=True)
     with pytest.raises(ValueError, match="lead_stop=true"):
         Agent.from_checkpoint(plain, speed_control="stop")
+
+
+def test_stop_release_times_a_creep_after_standing_held_by_the_class_alone() -> None:
+    """StopRelease: `patience` s standing with the class the only reason -> `creep` s released, then armed
+    again; moving, or a head that would stand anyway (a red light), restarts the count."""
+    from yawil.agent import StopRelease
+
+    r = StopRelease(patience=1.0, creep=0.5, dt=0.1)
+    seq = [r.released(0.0, True) for _ in range(20)]
+    assert seq[:9] == [False] * 9  # 0.9 s standing: still held
+    assert seq[9:14] == [True] * 5  # the 10th step (1.0 s) starts a 0.5 s creep
+    assert seq[14:] == [False] * 6  # armed again, counting afresh
+    r.reset()
+    for held in ([r.released(0.0, True) for _ in range(5)], [r.released(2.0, True)], [r.released(0.0, False)]):
+        assert not any(held)
+    assert r.stood == 0  # moving or a standing head restart the count
+    assert not any(r.released(0.0, True) for _ in range(9))
+
+
+@pytest.mark.parametrize("release", [0.0, 0.5])
+def test_stop_speed_control_releases_a_car_the_class_alone_holds(tiny_checkpoint: Any, release: float) -> None:
+    """speed_control="stop" with stop_release: the firing class holds a standing car `stop_release` s, then the
+    head's target speed drives it for STOP_CREEP s; without a release it stands for ever."""
+    from yawil.agent import STOP_CREEP
+    from yawil.sim.types import DT
+
+    path, _ = tiny_checkpoint("yaw-guided", guidance=GC, spread=True, guidance_dim=K, dropout=0.0, aux=True,
+                              lead_stop=True)
+    agent = Agent.from_checkpoint(path, precision="fp32", speed_control="stop", stop_release=release)
+    last = [m for m in agent.model.aux_head.modules() if isinstance(m, torch.nn.Linear)][-1]
+    with torch.no_grad():
+        last.weight[[0, 4]] = 0.0
+        last.bias[4] = 4.0  # fires on every frame
+        last.bias[0] = float(agent.norm.speed(torch.tensor([[5.0]]))[0, 0])  # the head would drive at 5 m/s
+    agent.reset()
+    obs = observation(speed=0.0)
+    released = []
+    for _ in range(int(round((release + STOP_CREEP) / DT)) + 20):
+        control = agent.act(obs)
+        assert agent.last is not None and agent.last.head_target_speed == pytest.approx(5.0, abs=1e-3)
+        released.append(control.throttle > 0.0)
+    n_hold = int(round(release / DT)) - 1
+    if release:
+        assert not any(released[:n_hold]) and all(released[n_hold:n_hold + int(round(STOP_CREEP / DT))])
+    else:
+        assert not any(released)
+    with pytest.raises(ValueError, match="stop_release"):
+        Agent.from_checkpoint(path, speed_control="target", stop_release=5.0)
+    with pytest.raises(ValueError, match="stop_release"):
+        Agent.from_checkpoint(path, speed_control="stop", stop_release=-1.0)

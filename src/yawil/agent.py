@@ -35,7 +35,7 @@ from yawil.policy.inputs import (
     takes_command,
 )
 from yawil.policy.runtime import Runtime, resolve_runtime
-from yawil.policy.speed import speed_control_mode
+from yawil.policy.speed import check_stop_release, speed_control_mode
 from yawil.sim.types import DT, Control, Observation, command_index
 
 
@@ -114,6 +114,43 @@ class SpeedControl:
         return float(np.clip(u, 0.0, self.max_throttle)), 0.0
 
 
+# "stop" with a release (`stop_release` seconds, yawil.policy.speed): the lead-stop class is ignored for
+# STOP_CREEP seconds once it alone has held the car standing that long; then it is armed again.
+STOP_CREEP = 2.0  # s: TransFuser++'s creep is 1.5 s (carla_garage, sensor_agent.py); ours drives the head's target
+STANDING = 0.1  # m/s: under this the car counts as standing (carla_garage's stuck detector uses the same)
+
+
+@dataclass
+class StopRelease:
+    """When to ignore the lead-stop class: it fired where no car stands (a false alarm seen on a straight
+    empty road, docs/experiments.md 2026-12-02, fourth session) and, the picture frozen once the car stands,
+    it keeps firing for ever. After `patience` seconds standing with the class the only reason to stand (the
+    head's own target speed would drive), the car drives by the head's target for `creep` seconds, so the
+    picture changes; a real standing car ahead is found again by the class once the creep ends.
+    Why a timer: a single frame cannot tell a false alarm from a real queue; TransFuser++ and TCP restart
+    stuck agents the same way (a stuck detector, then a forced creep)."""
+
+    patience: float
+    creep: float = STOP_CREEP
+    dt: float = DT
+    stood: int = 0  # steps standing held by the class alone
+    creep_left: int = 0  # steps of the creep still to drive
+
+    def reset(self) -> None:
+        self.stood = self.creep_left = 0
+
+    def released(self, speed: float, holding: bool) -> bool:
+        """One step: whether the class is ignored now. `holding`: it fires while the head would drive."""
+        if self.creep_left > 0:
+            self.creep_left -= 1
+            return True
+        self.stood = self.stood + 1 if (holding and speed < STANDING) else 0
+        if self.stood >= round(self.patience / self.dt):
+            self.stood, self.creep_left = 0, round(self.creep / self.dt) - 1
+            return True
+        return False
+
+
 @dataclass
 class StepOutput:
     """What the network said at the last step, before post-processing (numpy, batch dimension removed)."""
@@ -125,7 +162,8 @@ class StepOutput:
     guidance: np.ndarray | None  # the guidance vector given (before normalisation)
     command: int | None  # the branch index given
     control: Control = field(default_factory=Control)
-    target_speed: float | None = None  # m/s, from the aux head (models built with aux=true), after any "lead" cap
+    target_speed: float | None = None  # m/s, from the aux head (models built with aux=true), after any cap or stop
+    head_target_speed: float | None = None  # m/s, the aux head's own target speed, before any cap or stop
     lead_distance: float | None = None  # m to the lead vehicle's stop point, from the aux head
     lead_speed: float | None = None  # m/s of the lead vehicle, from the aux head
     lead_stop: float | None = None  # probability of a standing vehicle close ahead (models built with lead_stop=true)
@@ -152,6 +190,7 @@ class Agent:
         speed_control: bool | str | None = False,
         yaw_noise_mode: str = "raw",
         command_noise_mode: str = "burst-start",
+        stop_release: float = 0.0,
     ) -> None:
         if yaw_noise_deg < 0.0:
             raise ValueError(f"yaw_noise_deg={yaw_noise_deg!r}: expected >= 0 degrees")
@@ -186,6 +225,8 @@ class Agent:
             raise ValueError(f"speed_control 'stop' needs a model with the lead-stop output (--model-arg lead_stop=true); "
                              f"{getattr(model, 'name', type(model).__name__)} has none")
         self.speed_control: SpeedControl | None = SpeedControl() if self.speed_mode is not None else None
+        release = check_stop_release(stop_release, self.speed_mode)
+        self.stop_release: StopRelease | None = StopRelease(release) if release else None
         self.yaw_noise_deg = float(yaw_noise_deg)
         self.command_noise_p = float(command_noise_p)
         self.yaw_noise_mode = yaw_noise_mode
@@ -220,6 +261,8 @@ class Agent:
         self.last = None
         if self.speed_control is not None:
             self.speed_control.reset()
+        if self.stop_release is not None:
+            self.stop_release.reset()
         if seed is not None:
             self.seed = int(seed)
             self._rng = np.random.default_rng(self.seed)
@@ -274,17 +317,23 @@ class Agent:
             out = x.forward(self.model)
         actions = out.actions[0].float().cpu().numpy()
         speed = float(self.norm.speed_inverse(out.speed[0, 0].float()).cpu())
-        target_speed = lead_distance = lead_speed = lead_stop = None
+        target_speed = head_target = lead_distance = lead_speed = lead_stop = None
         if out.aux is not None:
             aux = out.aux[0].float().cpu()
-            target_speed = max(0.0, float(self.norm.speed_inverse(aux[0])))
+            target_speed = head_target = max(0.0, float(self.norm.speed_inverse(aux[0])))
             lead_distance = max(0.0, float(aux[1]) * LEAD_RANGE)
             lead_speed = max(0.0, float(self.norm.speed_inverse(aux[2])))
             if self.speed_mode == "lead" and lead_distance < LEAD_SEEN:
                 target_speed = min(target_speed, hazard_speed(lead_distance, lead_speed, LEAD_DECEL))
             if len(aux) > len(AUX_NAMES):
                 lead_stop = float(torch.sigmoid(aux[len(AUX_NAMES)]))
-                if self.speed_mode == "stop" and lead_stop > LEAD_STOP_FIRES:
+                fires = self.speed_mode == "stop" and lead_stop > LEAD_STOP_FIRES
+                if fires and self.stop_release is not None:
+                    holding = head_target >= SpeedControl.stop_speed
+                    fires = not self.stop_release.released(max(float(obs.speed), 0.0), holding)
+                elif self.stop_release is not None:
+                    self.stop_release.released(max(float(obs.speed), 0.0), False)
+                if fires:
                     target_speed = 0.0
         if self.speed_control is not None and target_speed is not None:
             throttle, brake = self.speed_control(target_speed, max(float(obs.speed), 0.0))
@@ -299,6 +348,7 @@ class Agent:
             command=command_idx,
             control=control,
             target_speed=target_speed,
+            head_target_speed=head_target,
             lead_distance=lead_distance,
             lead_speed=lead_speed,
             lead_stop=lead_stop,

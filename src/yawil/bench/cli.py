@@ -68,7 +68,7 @@ def _add_route_options(p: argparse.ArgumentParser | argparse._ArgumentGroup, act
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:  # type: ignore[type-arg]
-    from yawil.policy.speed import SPEED_CONTROLS
+    from yawil.policy.speed import add_speed_control_arguments
 
     p = subparsers.add_parser(
         "bench",
@@ -124,11 +124,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--command-noise", default="burst-start", choices=("burst-start", "frame-share"),
                    help="reading of --command-noise-p: burst-start (default) a 5-frame burst starts with p on each "
                         "quiet frame; frame-share: a share p of all frames is wrong, in 5-frame bursts")
-    p.add_argument("--speed-control", nargs="?", const="target", default=False, choices=SPEED_CONTROLS,
-                   help="learned agents with an aux head: throttle and brake from its predicted target speed "
-                        "(target, the default of the bare flag), or that speed capped by the expert's braking rule on "
-                        "its predicted lead vehicle (lead), or that speed set to 0 while its lead-stop output fires (stop; models "
-                        "built with lead_stop=true); docs/training.md")
+    add_speed_control_arguments(p)
     p.add_argument("--expert-arg", action="append", default=[], metavar="KEY=VALUE",
                    help="--agent expert: a setting of its ExpertConfig (docs/expert.md), e.g. comfort_decel=1.5; "
                         "repeat for more")
@@ -205,7 +201,7 @@ def _run_suite(args: argparse.Namespace) -> int:
     servers = servers_for(args.carla_servers, args.workers, args.backend)
     spec = AgentSpec(args.agent, args.yaw_noise_deg, args.command_noise_p, args.speed_control,
                      args.yaw_noise, args.command_noise, tuple(args.expert_arg),
-                     device=agent_device(args.device)).validate()
+                     device=agent_device(args.device), stop_release=args.stop_release).validate()
     factory: Any = None
     if args.backend != "embedded":
         if args.workers != 1 and servers is None:

@@ -24,7 +24,7 @@ from yawil.bench.records import PROTOCOL, EpisodeLog, check_run_info, episode_ke
 from yawil.bench.suites import Episode
 from yawil.executor import ExecutorConfig, for_worker, open_executor
 from yawil.locking import folder_lock
-from yawil.policy.speed import speed_control_mode
+from yawil.policy.speed import check_stop_release, speed_control_mode
 from yawil.sim.types import Control, Observation, World
 
 EXPERT = "expert"
@@ -50,6 +50,7 @@ class AgentSpec:
     # Where a learned agent's model runs: cpu or cuda (`--device`; `agent_device` resolves auto). Each worker
     # process loads its own copy. The expert has no model and ignores it.
     device: str = "cpu"
+    stop_release: float = 0.0  # s standing before the "stop" mode's lead-stop class is ignored (yawil.agent.StopRelease)
 
     @property
     def is_expert(self) -> bool:
@@ -64,6 +65,8 @@ class AgentSpec:
         if self.speed_control:  # only when set, so the records of earlier runs still match ("target" stays True)
             mode = speed_control_mode(self.speed_control)
             opts["speed_control"] = True if mode == "target" else mode
+        if self.stop_release:  # only when set, so the records of earlier runs still match
+            opts["stop_release"] = float(self.stop_release)
         if self.device != "cpu" and not self.is_expert:  # only when set, so the records of earlier runs still match
             opts["device"] = self.device
         if self.expert_args:  # the settings that differ from the default expert, by name
@@ -77,7 +80,7 @@ class AgentSpec:
             raise ValueError(f"--agent {self.agent!r}: expected 'expert' or the path of a checkpoint file")
         if self.is_expert and (self.yaw_noise_deg or self.command_noise_p or self.speed_control):
             raise ValueError("noise and speed-control options apply to learned agents, not to the expert")
-        speed_control_mode(self.speed_control)  # an unknown mode fails before the checkpoint is read
+        check_stop_release(self.stop_release, speed_control_mode(self.speed_control))  # before the checkpoint is read
         if self.expert_args and not self.is_expert:
             raise ValueError("--expert-arg applies to --agent expert only")
         if self.device not in ("cpu", "cuda"):
@@ -127,7 +130,7 @@ class AgentSpec:
 
         return Agent.from_checkpoint(  # type: ignore[no-any-return]
             self.agent, yaw_noise_deg=self.yaw_noise_deg, command_noise_p=self.command_noise_p, seed=seed,
-            speed_control=self.speed_control, yaw_noise_mode=self.yaw_noise_mode,
+            speed_control=self.speed_control, stop_release=self.stop_release, yaw_noise_mode=self.yaw_noise_mode,
             command_noise_mode=self.command_noise_mode, device=self.device,
         )
 

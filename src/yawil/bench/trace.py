@@ -25,11 +25,11 @@ from yawil.bench.metrics import EpisodeTracker
 from yawil.bench.runner import AgentSpec, agent_device
 from yawil.bench.suites import Episode, episodes
 from yawil.fileio import write_atomic
-from yawil.policy.speed import SPEED_CONTROLS
+from yawil.policy.speed import add_speed_control_arguments
 
 COLUMNS = ("time", "speed", "steer", "throttle", "brake", "agent_target_speed", "agent_lead_stop_m", "agent_lead_speed",
            "expert_steer", "expert_throttle", "expert_brake", "expert_target_speed", "expert_reason", "lead_stop_m",
-           "lead_speed", "agent_lead_stop_p")
+           "lead_speed", "agent_lead_stop_p", "agent_head_target_speed")
 
 
 @dataclass(frozen=True)
@@ -80,8 +80,8 @@ def trace_episode(ep: Episode, spec: AgentSpec, out: str | os.PathLike[str], exp
             lead = min(leads, key=lambda h: h.distance) if leads else None
             control = agent.act(obs)
             last = getattr(agent, "last", None)
-            target, a_lead, a_lead_v, a_stop = (getattr(last, k, None) for k in
-                                                ("target_speed", "lead_distance", "lead_speed", "lead_stop"))
+            target, a_lead, a_lead_v, a_stop, head = (getattr(last, k, None) for k in (
+                "target_speed", "lead_distance", "lead_speed", "lead_stop", "head_target_speed"))
             rows.append([
                 round(obs.time, 2), round(obs.speed, 3), round(control.steer, 4), round(control.throttle, 4),
                 round(control.brake, 4), "" if target is None else round(target, 3),
@@ -89,7 +89,7 @@ def trace_episode(ep: Episode, spec: AgentSpec, out: str | os.PathLike[str], exp
                 round(shadow.steer, 4),
                 round(shadow.throttle, 4), round(shadow.brake, 4), round(st.target_speed, 3), st.reason,
                 "" if lead is None else round(lead.distance, 2), "" if lead is None else round(lead.speed, 2),
-                "" if a_stop is None else round(a_stop, 3),
+                "" if a_stop is None else round(a_stop, 3), "" if head is None else round(head, 3),
             ])
             obs = world.step(control)
             if tracker.update(obs):
@@ -113,8 +113,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--agent", required=True, help="a checkpoint (or 'expert': the expert shadowing itself)")
     p.add_argument("--out", required=True, help="the CSV file to write")
     p.add_argument("--suite", default="all", help="the suite the episode belongs to (default all)")
-    p.add_argument("--speed-control", nargs="?", const="target", default=False, choices=SPEED_CONTROLS,
-                   help="as yawil bench --speed-control")
+    add_speed_control_arguments(p, "as yawil bench: ")
     p.add_argument("--expert-arg", action="append", default=[], metavar="KEY=VALUE",
                    help="a setting of the shadowing expert's ExpertConfig (and of the agent, with --agent expert)")
     p.add_argument("--device", default="cpu", choices=("cpu", "cuda", "auto"),
@@ -125,7 +124,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     expert_args = tuple(args.expert_arg)
-    spec = AgentSpec(args.agent, speed_control=args.speed_control,
+    spec = AgentSpec(args.agent, speed_control=args.speed_control, stop_release=args.stop_release,
                      expert_args=expert_args if args.agent == "expert" else (),
                      device=agent_device(args.device)).validate()
     ep = find_episode(args.episode, args.suite)

@@ -29,7 +29,12 @@ from pathlib import Path
 from typing import Any
 
 from yawil.executor import ExecutorConfig, add_executor_arguments, executor_from_args
-from yawil.policy.speed import SPEED_CONTROLS, speed_control_mode
+from yawil.policy.speed import (
+    SPEED_CONTROLS,
+    add_speed_control_arguments,
+    check_stop_release,
+    speed_control_mode,
+)
 from yawil.stages import read_marker, run_stage
 
 TRAIN_MODES = ("finetune", "scratch")
@@ -69,6 +74,7 @@ class DaggerConfig:
     expert_data: str | None = None  # an existing expert dataset instead of collecting one
     # the learner drives throttle and brake from its aux head (as benched): True/"target", "lead" or "stop"
     speed_control: bool | str = False
+    stop_release: float = 0.0  # s: the learner's "stop" release, as `yawil bench --stop-release`
     expert_args: dict[str, float] = field(default_factory=dict)  # ExpertConfig settings of the expert (labels, takeovers)
 
     def __post_init__(self) -> None:
@@ -87,9 +93,13 @@ class DaggerConfig:
         need(self.lr > 0 and math.isfinite(self.lr), "lr", "a number > 0")
         need(isinstance(self.train_args, dict), "train_args", "a mapping of train settings")
         try:
-            speed_control_mode(self.speed_control)
+            mode = speed_control_mode(self.speed_control)
         except ValueError:
             need(False, "speed_control", f"true, false or one of {', '.join(SPEED_CONTROLS)}")
+        try:
+            check_stop_release(self.stop_release, mode)
+        except ValueError:
+            need(False, "stop_release", "seconds >= 0, > 0 only with speed_control 'stop'")
         need(isinstance(self.expert_args, dict), "expert_args", "a mapping of ExpertConfig settings")
         self.expert_config()  # an unknown or invalid expert setting fails here
         self.executor_config()  # and an unknown executor
@@ -118,7 +128,8 @@ def _is_int(v: Any) -> bool:
     return isinstance(v, int) and not isinstance(v, bool)
 
 
-def load_learner(checkpoint: str, threads: int = 1, speed_control: bool | str = False) -> Any:
+def load_learner(checkpoint: str, threads: int = 1, speed_control: bool | str = False,
+                 stop_release: float = 0.0) -> Any:
     """The learner of a collection process: the checkpoint's agent on the CPU, with `threads` torch threads,
     driving as it will be benchmarked (`speed_control`: throttle and brake from its target speed), so that the
     states it visits are the ones the benchmark will see."""
@@ -127,7 +138,7 @@ def load_learner(checkpoint: str, threads: int = 1, speed_control: bool | str = 
     from yawil.agent import Agent
 
     torch.set_num_threads(threads)
-    return Agent.from_checkpoint(checkpoint, device="cpu", speed_control=speed_control)
+    return Agent.from_checkpoint(checkpoint, device="cpu", speed_control=speed_control, stop_release=stop_release)
 
 
 # ------------------------------------------------------------------------------------------------- loop
@@ -225,7 +236,7 @@ class DaggerRun:
         onpolicy = OnPolicy(round=r, beta=cfg.beta_of(r), segment_seconds=cfg.segment_seconds,
                             takeover_lateral=cfg.takeover_lateral, takeover_decel=cfg.takeover_decel,
                             takeover_stall=cfg.takeover_stall, takeover_seconds=cfg.takeover_seconds)
-        learner = Learner(factory=functools.partial(load_learner, str(policy), 1, cfg.speed_control), onpolicy=onpolicy,
+        learner = Learner(factory=functools.partial(load_learner, str(policy), 1, cfg.speed_control, cfg.stop_release), onpolicy=onpolicy,
                           identity=str(policy.resolve()), min_world_seed=BENCH_WORLD_SEED_LIMIT,
                           reject_route=BenchmarkRoutes(cfg.town))
         # No steering noise (the learner makes its own mistakes); the second before a collision is not a label.
@@ -296,9 +307,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
                    help="a further train setting (JSON value), e.g. --train-arg speed_dropout=0.3")
     p.add_argument("--round0", default=None, help="use this checkpoint as the round-0 policy (with --expert-data)")
     p.add_argument("--expert-data", default=None, help="use this expert dataset as round 0's data")
-    p.add_argument("--speed-control", nargs="?", const="target", default=False, choices=SPEED_CONTROLS,
-                   help="the learner drives throttle and brake through its aux head as `yawil bench --speed-control` "
-                        "does: target (the bare flag), lead or stop")
+    add_speed_control_arguments(p, "the learner, as yawil bench drives it: ")
     p.add_argument("--expert-arg", action="append", default=[], metavar="KEY=VALUE",
                    help="a setting of the expert's ExpertConfig for its data, labels and takeovers (as yawil collect)")
     p.add_argument("--no-progress", action="store_true")
@@ -341,6 +350,7 @@ def run(args: argparse.Namespace) -> int:
             lr=args.lr, workers=args.workers, executor=executor_from_args(args).kind, ray_address=args.ray_address,
             threads=args.threads, train_args=_train_args(args.train_arg),
             round0=args.round0, expert_data=args.expert_data, speed_control=args.speed_control,
+            stop_release=args.stop_release,
             expert_args=_expert_args(args.expert_arg),
         )
         from yawil.learn.config import TrainConfig

@@ -4,10 +4,14 @@ lines and the benchmark's records can use the names; the controllers themselves 
 None: the network's own throttle and brake; "target": a PI controller on the aux head's target speed;
 "lead": the same with the target capped by the expert's braking rule on the aux head's predicted lead vehicle;
 "stop": the same with the target set to 0 while the lead-stop output (a model built with lead_stop=true) says a
-standing vehicle is close ahead (probability over 0.5).
+standing vehicle is close ahead (probability over 0.5); with a release (`stop_release` seconds, 0 = never) the
+output is ignored for a short creep once it alone has held the car standing that long (`yawil.agent.StopRelease`).
 """
 
 from __future__ import annotations
+
+import argparse
+import math
 
 SPEED_CONTROLS: tuple[str, ...] = ("target", "lead", "stop")
 
@@ -21,3 +25,24 @@ def speed_control_mode(value: bool | str | None) -> str | None:
     if value not in SPEED_CONTROLS:
         raise ValueError(f"speed_control={value!r}: expected one of {', '.join(SPEED_CONTROLS)} (or true / false)")
     return str(value)
+
+
+def check_stop_release(seconds: float, mode: str | None) -> float:
+    """`stop_release` as a float, refused in one line unless >= 0 s and (when > 0) with the "stop" mode."""
+    if isinstance(seconds, bool) or not isinstance(seconds, (int, float)) or not (math.isfinite(seconds) and seconds >= 0):
+        raise ValueError(f"stop_release={seconds!r}: expected seconds >= 0 (0: never release)")
+    if seconds and mode != "stop":
+        raise ValueError(f"stop_release={seconds!r} applies to --speed-control stop, not {mode!r}")
+    return float(seconds)
+
+
+def add_speed_control_arguments(p: argparse.ArgumentParser, what: str = "") -> None:
+    """--speed-control and --stop-release, the same on bench, trace, select and dagger."""
+    p.add_argument("--speed-control", nargs="?", const="target", default=False, choices=SPEED_CONTROLS,
+                   help=(what or "learned agents with an aux head: ") + "throttle and brake from the predicted target "
+                        "speed (target, the default of the bare flag), or that speed capped by the expert's braking "
+                        "rule on the predicted lead vehicle (lead), or set to 0 while the lead-stop output fires "
+                        "(stop; models built with lead_stop=true); docs/training.md")
+    p.add_argument("--stop-release", type=float, default=0.0, metavar="SECONDS",
+                   help="with --speed-control stop: after this many seconds standing with the lead-stop output the "
+                        "only reason, ignore it for a 2 s creep (default 0: never)")

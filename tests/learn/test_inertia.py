@@ -23,7 +23,16 @@ K = 4
 
 
 def _yilratt(name: str = "yilratt", **kw: object) -> models.DrivingModel:
+    if name in ("cil", "cilrs"):  # command nets: no guidance
+        return models.create(name, seed=0, dropout=0.0, **kw)
     return models.create(name, seed=0, guidance_dim=K, dropout=0.0, **kw)
+
+
+def _run(model: models.DrivingModel, image: torch.Tensor, speed: torch.Tensor, guide: torch.Tensor) -> models.ModelOutput:
+    """Forward with guidance, or with a command for the command nets."""
+    if model.uses_command:
+        return model(image, speed, command=torch.arange(len(image)) % 4)
+    return model(image, speed, guidance=guide)
 
 
 def _inputs(b: int = 2) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
@@ -31,23 +40,23 @@ def _inputs(b: int = 2) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     return torch.rand(b, 3, 88, 200, generator=g), torch.rand(b, 1, generator=g), torch.rand(b, K, generator=g)
 
 
-@pytest.mark.parametrize("name", ["yilratt", "yaw-guided"])
+@pytest.mark.parametrize("name", ["yilratt", "yaw-guided", "cil", "cilrs"])
 def test_aux_head_and_speed_blind_variant(name: str) -> None:
-    """YILRatt and the yaw-guided baseline offer the same variants, so a recipe compares on both."""
+    """YILRatt and the baselines offer the same variants, so a recipe compares on all of them."""
     image, speed, guide = _inputs()
     plain = _yilratt(name).eval()
-    assert plain(image, speed, guidance=guide).aux is None
+    assert _run(plain, image, speed, guide).aux is None
     aux = _yilratt(name, aux=True).eval()
-    out = aux(image, speed, guidance=guide)
+    out = _run(aux, image, speed, guide)
     assert out.aux is not None and tuple(out.aux.shape) == (2, len(models.base.AUX_NAMES))
     # the aux head is added last: every other weight is initialised as in the plain model
     for key, value in plain.state_dict().items():
         assert torch.equal(value, aux.state_dict()[key]), key
     blind = _yilratt(name, speed_input=False).eval()
     with torch.inference_mode():
-        a = blind(image, speed, guidance=guide).actions
-        b = blind(image, speed * 0 + 5.0, guidance=guide).actions
-        c = plain(image, speed * 0 + 5.0, guidance=guide).actions
+        a = _run(blind, image, speed, guide).actions
+        b = _run(blind, image, speed * 0 + 5.0, guide).actions
+        c = _run(plain, image, speed * 0 + 5.0, guide).actions
     assert torch.equal(a, b) and not torch.allclose(a, c)
     with pytest.raises(ValueError, match="speed_input"):
         _yilratt(name, speed_input="no")
@@ -193,10 +202,10 @@ def test_aux_loss_option_sets_the_criterion_of_the_aux_regressions() -> None:
     assert mse != pytest.approx(l1) and mse == pytest.approx(same_mse)  # actions and speed are 0 = their targets
 
 
-@pytest.mark.parametrize("name", ["yilratt", "yaw-guided"])
+@pytest.mark.parametrize("name", ["yilratt", "yaw-guided", "cil", "cilrs"])
 def test_lead_stop_output_widens_the_aux_head(name: str) -> None:
     image, speed, guide = _inputs()
-    out = _yilratt(name, aux=True, lead_stop=True).eval()(image, speed, guidance=guide)
+    out = _run(_yilratt(name, aux=True, lead_stop=True).eval(), image, speed, guide)
     assert out.aux is not None and tuple(out.aux.shape) == (2, len(models.base.AUX_NAMES) + 1)
     with pytest.raises(ValueError, match="aux=true"):
         _yilratt(name, lead_stop=True)

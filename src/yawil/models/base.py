@@ -42,11 +42,16 @@ LEAD_STOP_SPEED = 2.0  # m/s, the lead vehicle's speed
 LEAD_STOP_FIRES = 0.5  # probability over which the output counts as "yes" (validation, `--speed-control stop`)
 
 
+def check_flag(name: str, value: bool) -> bool:
+    """A model argument that must be true or false (a YAML/JSON "yes" or 1 is refused, not read as true)."""
+    if not isinstance(value, bool):
+        raise ValueError(f"{name}: expected true or false, got {value!r}")
+    return value
+
+
 def aux_outputs(aux: bool, lead_stop: bool) -> int:
     """Width of the aux head: AUX_NAMES, then the lead-stop logit; refuses lead_stop without aux."""
-    for name, v in (("aux", aux), ("lead_stop", lead_stop)):
-        if not isinstance(v, bool):
-            raise ValueError(f"{name}: expected true or false, got {v!r}")
+    check_flag("aux", aux), check_flag("lead_stop", lead_stop)
     if lead_stop and not aux:
         raise ValueError("lead_stop=true is an output of the aux head: build the model with aux=true too")
     return (len(AUX_NAMES) + int(lead_stop)) if aux else 0

@@ -17,7 +17,7 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor, nn
 
-from yawil.models.base import NUM_COMMANDS, DrivingModel, ModelOutput, squash_actions
+from yawil.models.base import NUM_COMMANDS, DrivingModel, ModelOutput, aux_outputs, check_flag, squash_actions
 from yawil.models.layers import fc_relu, head, select_branch
 from yawil.models.registry import register
 
@@ -92,14 +92,22 @@ class CIL(DrivingModel):
     """Conditional imitation learning, the branched network of Codevilla et al. 2018."""
 
     def __init__(
-        self, image_size: Sequence[int] = (88, 200), dropout: float = 0.5, conv_dropout: float = 0.0
+        self, image_size: Sequence[int] = (88, 200), dropout: float = 0.5, conv_dropout: float = 0.0,
+        speed_input: bool = True, aux: bool = False, lead_stop: bool = False,
     ) -> None:
+        """`speed_input`, `aux`, `lead_stop`: YILRatt's inertia variants (docs/training.md), so that CIL can be
+        trained with the same recipe as YILRatt for the paper's comparison; the aux head is shared by the
+        branches (the scene's target speed does not depend on the command)."""
         super().__init__(guidance=None, guidance_dim=0, uses_command=True)
+        self.speed_input = check_flag("speed_input", speed_input)
         self.perception = CILPerception(image_size, conv_dropout)
         self.measurement = fc_relu(1, (128, 128))
         self.join = fc_relu(self.perception.out_dim + 128, (512,))
         self.branches = nn.ModuleList(head(512, (256, 256), 3, dropout) for _ in range(NUM_COMMANDS))
         self.speed_head = head(self.perception.out_dim, (256, 256), 1, dropout)
+        n_aux = aux_outputs(aux, lead_stop)
+        self.lead_stop = lead_stop
+        self.aux_head = head(512, (256,), n_aux, dropout) if n_aux else None
 
     def forward(
         self, image: Tensor, speed: Tensor, guidance: Tensor | None = None, command: Tensor | None = None
@@ -108,9 +116,12 @@ class CIL(DrivingModel):
         assert cmd is not None
         self.perception.check(image)
         feat = self.perception(self.normalise(image))
+        if not self.speed_input:
+            speed = torch.zeros_like(speed)
         j = self.join(torch.cat([feat, self.measurement(speed.to(feat.dtype))], dim=1))
         branches = squash_actions(torch.stack([b(j) for b in self.branches], dim=1))
-        return ModelOutput(select_branch(branches, cmd), self.speed_head(feat), [], branches)
+        aux = self.aux_head(j) if self.aux_head is not None else None
+        return ModelOutput(select_branch(branches, cmd), self.speed_head(feat), [], branches, aux)
 
     def stage_features(self, image: Tensor) -> list[Tensor]:
         self.perception.check(image)

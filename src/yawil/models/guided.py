@@ -17,7 +17,14 @@ from collections.abc import Sequence
 import torch
 from torch import Tensor
 
-from yawil.models.base import DrivingModel, ModelOutput, aux_outputs, resolve_guidance, squash_actions
+from yawil.models.base import (
+    DrivingModel,
+    ModelOutput,
+    aux_outputs,
+    check_flag,
+    resolve_guidance,
+    squash_actions,
+)
 from yawil.models.cil import CILPerception
 from yawil.models.layers import fc_relu, head
 from yawil.models.registry import register
@@ -42,10 +49,8 @@ class GuidedIL(DrivingModel):
         """`speed_input` and `aux`: the inertia variants of YILRatt (docs/training.md), so that a recipe can be
         compared on the cheap baseline and on YILRatt the same way."""
         super().__init__(guidance=guidance, guidance_dim=resolve_guidance(guidance, guidance_dim), uses_command=False)
-        if not isinstance(speed_input, bool):  # aux and lead_stop: aux_outputs checks them
-            raise ValueError(f"speed_input: expected true or false, got {speed_input!r}")
         self.name = NAMES[guidance]
-        self.speed_input = speed_input
+        self.speed_input = check_flag("speed_input", speed_input)  # aux and lead_stop: aux_outputs checks them
         self.perception = CILPerception(image_size, conv_dropout)
         self.measurement = fc_relu(1 + self.guidance_dim, (128, 128))
         self.join = fc_relu(self.perception.out_dim + 128, (512,))

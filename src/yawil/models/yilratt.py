@@ -13,7 +13,14 @@ from pathlib import Path
 import torch
 from torch import Tensor, nn
 
-from yawil.models.base import DrivingModel, ModelOutput, aux_outputs, resolve_guidance, squash_actions
+from yawil.models.base import (
+    DrivingModel,
+    ModelOutput,
+    aux_outputs,
+    check_flag,
+    resolve_guidance,
+    squash_actions,
+)
 from yawil.models.layers import LinearAttention, fc_relu, head
 from yawil.models.registry import register
 from yawil.models.resnet import STAGE_CHANNELS, build_resnet34, load_imagenet_weights, resnet_stages
@@ -35,11 +42,8 @@ class YILRatt(DrivingModel):
         `aux=True` adds a head on the joined features predicting AUX_NAMES (the expert's target speed, the
         lead vehicle, a light ahead); `lead_stop=True` one more, the logit of a standing vehicle close ahead."""
         super().__init__(guidance=guidance, guidance_dim=resolve_guidance(guidance, guidance_dim), uses_command=False)
-        for name, v in (("compute_global", compute_global), ("speed_input", speed_input)):  # aux: aux_outputs
-            if not isinstance(v, bool):
-                raise ValueError(f"{name}: expected true or false, got {v!r}")
-        self.compute_global = compute_global
-        self.speed_input = speed_input
+        self.compute_global = check_flag("compute_global", compute_global)
+        self.speed_input = check_flag("speed_input", speed_input)  # aux and lead_stop: aux_outputs checks them
         global_dim = STAGE_CHANNELS[-1]
         self.backbone = build_resnet34()
         self.attention = nn.ModuleList(LinearAttention(c, global_dim) for c in STAGE_CHANNELS[:3])

@@ -2,7 +2,8 @@
 
 Every module belongs to a layer, and the layers follow the data flow, lowest first:
 
-     0 base       yawil (the package: version, Gymnasium registration), executor, fileio, locking, stages, video
+     0 base       yawil (the package: version, Gymnasium registration), executor, fileio, locking, stages, video,
+                  zoo (the catalogue of shipped models: names, cards, paths; torch-free)
      1 sim        yawil.sim (both worlds, types, the episode judge and criteria, the CARLA backend)
      2 guidance   yawil.guidance (a route -> a guidance vector)
      3 expert     yawil.expert
@@ -11,7 +12,7 @@ Every module belongs to a layer, and the layers follow the data flow, lowest fir
      6 models     yawil.models
      7 policy     yawil.policy (checkpoint format and model rebuild, the model-input contract, runtime)
      8 learn      yawil.learn (config, sampling, loss, validation, loop, augmentation, DDP, ONNX export)
-     9 agent      yawil.agent
+     9 agent      yawil.agent, yawil.zoo.pack and yawil.zoo.cli (packing and checking zoo models drive the agent)
     10 bench      yawil.bench (suites, route files, runner, metrics, report, experiments, select)
     11 explain    yawil.explain (attention maps, figures, videos)
     12 pipelines  yawil.pipelines (demo, reproduce, dagger)
@@ -45,7 +46,8 @@ SRC = Path(__file__).resolve().parent.parent / "src"
 
 # (layer name, module prefixes), lowest first. A module belongs to the layer of its longest matching prefix.
 LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
-    ("base", ("yawil", "yawil.executor", "yawil.fileio", "yawil.locking", "yawil.provenance", "yawil.stages", "yawil.video")),
+    ("base", ("yawil", "yawil.executor", "yawil.fileio", "yawil.locking", "yawil.provenance", "yawil.stages", "yawil.video",
+              "yawil.zoo")),
     ("sim", ("yawil.sim",)),
     ("guidance", ("yawil.guidance",)),
     ("expert", ("yawil.expert",)),
@@ -54,7 +56,7 @@ LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
     ("models", ("yawil.models",)),
     ("policy", ("yawil.policy",)),
     ("learn", ("yawil.learn",)),
-    ("agent", ("yawil.agent",)),
+    ("agent", ("yawil.agent", "yawil.zoo.pack", "yawil.zoo.cli")),
     ("bench", ("yawil.bench",)),
     ("explain", ("yawil.explain",)),
     ("pipelines", ("yawil.pipelines",)),

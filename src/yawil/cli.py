@@ -19,6 +19,7 @@ COMMANDS: dict[str, str] = {
     "collect": "yawil.data.collect_cli",
     "data": "yawil.data.cli",
     "models": "yawil.models.cli",
+    "zoo": "yawil.zoo.cli",
     "train": "yawil.learn.cli",
     "dagger": "yawil.pipelines.dagger",
     "export": "yawil.learn.export",

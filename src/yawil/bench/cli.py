@@ -92,7 +92,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         help="training | new-weather | new-town | new-town-weather (square for the square suite); repeat or "
         "comma-separate; default: all of the suite's",
     )
-    p.add_argument("--agent", default="expert", help="'expert' or a checkpoint path (default expert)")
+    p.add_argument("--agent", default="expert", help="'expert', a checkpoint path or zoo:NAME (yawil zoo list; default expert)")
     p.add_argument("--device", default="cpu", choices=("cpu", "cuda", "auto"),
                    help="where a learned agent's model runs (default cpu; auto: cuda when torch sees one); each "
                         "worker process loads its own copy (docs/scale.md)")
@@ -192,16 +192,17 @@ def _run_suite(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     apply_preset(args)
-    from yawil.bench.runner import AgentSpec, agent_device, run_benchmark
+    from yawil.bench.runner import AgentSpec, agent_device, drive_options, run_benchmark
     from yawil.bench.suites import episodes
     from yawil.executor import executor_from_args
     from yawil.sim.carla.servers import server_worlds, servers_for
 
     executor = executor_from_args(args)
     servers = servers_for(args.carla_servers, args.workers, args.backend)
-    spec = AgentSpec(args.agent, args.yaw_noise_deg, args.command_noise_p, args.speed_control,
+    speed_control, stop_release = drive_options(args)
+    spec = AgentSpec(args.agent, args.yaw_noise_deg, args.command_noise_p, speed_control,
                      args.yaw_noise, args.command_noise, tuple(args.expert_arg),
-                     device=agent_device(args.device), stop_release=args.stop_release).validate()
+                     device=agent_device(args.device), stop_release=stop_release).validate()
     factory: Any = None
     if args.backend != "embedded":
         if args.workers != 1 and servers is None:
@@ -225,7 +226,7 @@ def _run_suite(args: argparse.Namespace) -> int:
             weather_rule=args.weather_rule or "all",
         )
     out = Path(args.out) if args.out else Path("results") / (
-        "expert" if spec.is_expert else Path(args.agent).resolve().parent.name
+        "expert" if spec.is_expert else spec.checkpoint.resolve().parent.name
     )
     try:
         summary = run_benchmark(

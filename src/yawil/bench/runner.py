@@ -56,6 +56,15 @@ class AgentSpec:
     def is_expert(self) -> bool:
         return self.agent == EXPERT
 
+    @property
+    def checkpoint(self) -> Path:
+        """The checkpoint file of a learned agent: the path given, or a zoo model's (`zoo:NAME`)."""
+        if self.agent.startswith("zoo:"):
+            from yawil.zoo import resolve_checkpoint
+
+            return resolve_checkpoint(self.agent)
+        return Path(self.agent)
+
     def options(self) -> dict[str, Any]:
         opts: dict[str, Any] = {"yaw_noise_deg": self.yaw_noise_deg, "command_noise_p": self.command_noise_p}
         if self.yaw_noise_deg:  # a reading only where its noise is on: noiseless runs of either are one run
@@ -76,8 +85,8 @@ class AgentSpec:
         return opts
 
     def validate(self) -> AgentSpec:
-        if not self.is_expert and not Path(self.agent).is_file():
-            raise ValueError(f"--agent {self.agent!r}: expected 'expert' or the path of a checkpoint file")
+        if not self.is_expert and not self.checkpoint.is_file():
+            raise ValueError(f"--agent {self.agent!r}: expected 'expert', zoo:NAME or the path of a checkpoint file")
         if self.is_expert and (self.yaw_noise_deg or self.command_noise_p or self.speed_control):
             raise ValueError("noise and speed-control options apply to learned agents, not to the expert")
         check_stop_release(self.stop_release, speed_control_mode(self.speed_control))  # before the checkpoint is read
@@ -105,17 +114,17 @@ class AgentSpec:
         return self
 
     def identity(self) -> str:
-        return EXPERT if self.is_expert else str(Path(self.agent).resolve())
+        return EXPERT if self.is_expert else str(self.checkpoint.resolve())
 
     def content_hash(self) -> str | None:
         """SHA-256 of the checkpoint file (None for the expert): a resume must drive the same weights, even
         when another checkpoint was written to the same path in between."""
-        if self.is_expert or not Path(self.agent).is_file():  # the expert, or a custom agent_factory's name
+        if self.is_expert or not self.checkpoint.is_file():  # the expert, or a custom agent_factory's name
             return None
         import hashlib
 
         h = hashlib.sha256()
-        with open(self.agent, "rb") as fh:
+        with open(self.checkpoint, "rb") as fh:
             for block in iter(lambda: fh.read(1 << 20), b""):
                 h.update(block)
         return h.hexdigest()
@@ -129,10 +138,24 @@ class AgentSpec:
         from yawil.agent import Agent
 
         return Agent.from_checkpoint(  # type: ignore[no-any-return]
-            self.agent, yaw_noise_deg=self.yaw_noise_deg, command_noise_p=self.command_noise_p, seed=seed,
+            self.checkpoint, yaw_noise_deg=self.yaw_noise_deg, command_noise_p=self.command_noise_p, seed=seed,
             speed_control=self.speed_control, stop_release=self.stop_release, yaw_noise_mode=self.yaw_noise_mode,
             command_noise_mode=self.command_noise_mode, device=self.device,
         )
+
+
+def drive_options(args: Any) -> tuple[bool | str, float]:
+    """--speed-control and --stop-release as given; for a zoo model given neither, its card's `drive` (so that
+    `--agent zoo:NAME` drives as the card's figures were measured), said in one line."""
+    if args.speed_control or args.stop_release or not str(args.agent).startswith("zoo:"):
+        return args.speed_control, args.stop_release
+    from yawil.zoo import card_drive
+
+    mode, release = card_drive(args.agent)
+    if mode:
+        print(f"{args.agent}: driven as its card says: --speed-control {mode}" +
+              (f" --stop-release {release:g}" if release else ""))
+    return mode, release
 
 
 def agent_device(name: str) -> str:

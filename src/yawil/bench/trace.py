@@ -22,7 +22,7 @@ from dataclasses import dataclass
 from typing import Any
 
 from yawil.bench.metrics import EpisodeTracker
-from yawil.bench.runner import AgentSpec, agent_device
+from yawil.bench.runner import AgentSpec, agent_device, drive_options
 from yawil.bench.suites import Episode, episodes
 from yawil.fileio import write_atomic
 from yawil.policy.speed import add_speed_control_arguments
@@ -110,7 +110,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
         "trace", help="one benchmark episode frame by frame: the agent's decision beside the expert's (CSV)",
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("episode", help="the record key task/condition/weather/route/seed, e.g. regular/training/WetNoon/1/0")
-    p.add_argument("--agent", required=True, help="a checkpoint (or 'expert': the expert shadowing itself)")
+    p.add_argument("--agent", required=True, help="a checkpoint, zoo:NAME, or 'expert' (the expert shadowing itself)")
     p.add_argument("--out", required=True, help="the CSV file to write")
     p.add_argument("--suite", default="all", help="the suite the episode belongs to (default all)")
     add_speed_control_arguments(p, "as yawil bench: ")
@@ -124,7 +124,8 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     expert_args = tuple(args.expert_arg)
-    spec = AgentSpec(args.agent, speed_control=args.speed_control, stop_release=args.stop_release,
+    speed_control, stop_release = drive_options(args)
+    spec = AgentSpec(args.agent, speed_control=speed_control, stop_release=stop_release,
                      expert_args=expert_args if args.agent == "expert" else (),
                      device=agent_device(args.device)).validate()
     ep = find_episode(args.episode, args.suite)

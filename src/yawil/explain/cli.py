@@ -20,7 +20,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
             "driven episode (Figure 9)."
         ),
     )
-    p.add_argument("--checkpoint", required=True, help="a yawil checkpoint (best.pt / last.pt)")
+    p.add_argument("--checkpoint", required=True, help="a yawil checkpoint (best.pt / last.pt) or zoo:NAME")
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--frames", help="a dataset folder or one episode .h5 file to draw frames from")
     src.add_argument("--episode", action="store_true", help="drive a fresh episode and make a video")

@@ -28,7 +28,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
         "export", help="export a checkpoint to ONNX", description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )  # fmt: skip
-    p.add_argument("checkpoint", help="a yawil checkpoint (best.pt / last.pt)")
+    p.add_argument("checkpoint", help="a yawil checkpoint (best.pt / last.pt) or zoo:NAME")
     p.add_argument("--onnx", required=True, metavar="OUT", help="ONNX file to write")
     p.add_argument("--opset", type=int, default=OPSET, help=f"ONNX opset (>= 17, default {OPSET})")
     p.add_argument("--check", action="store_true", help="compare onnxruntime with torch on a random batch")

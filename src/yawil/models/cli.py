@@ -12,6 +12,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         description="List every registered model: parameters, inputs, default config.",
     )
     p.add_argument("--json", action="store_true", help="print a JSON list instead of a table")
+    p.add_argument("--zoo", action="store_true", help="list the trained models shipped with yawil (yawil zoo list)")
     return p
 
 
@@ -38,6 +39,11 @@ def describe() -> list[dict[str, object]]:
 def run(args: argparse.Namespace) -> int:
     import json
 
+    if args.zoo:
+        from yawil.zoo import table
+
+        print(table())
+        return 0
     rows = describe()
     if args.json:
         print(json.dumps(rows, indent=2))

@@ -167,7 +167,12 @@ def save_checkpoint(ckpt: dict[str, Any], path: str | os.PathLike[str]) -> Path:
 
 
 def load_checkpoint(path: str | os.PathLike[str], map_location: str | torch.device = "cpu") -> dict[str, Any]:
-    """Load and validate a yawil checkpoint, with an error that names the file and what is wrong."""
+    """Load and validate a yawil checkpoint (a path, or `zoo:NAME`: yawil.zoo), with an error that names
+    the file and what is wrong."""
+    if str(path).startswith("zoo:"):
+        from yawil.zoo import resolve_checkpoint
+
+        path = resolve_checkpoint(path)
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"checkpoint {path} does not exist")
@@ -196,5 +201,9 @@ def model_from_checkpoint(ckpt: dict[str, Any]) -> torch.nn.Module:
     config = dict(ckpt["model_config"])
     config.pop("pretrained", None)  # the weights come from the checkpoint itself
     model = models.create(ckpt["model_name"], **config)
-    model.load_state_dict(ckpt["state_dict"])
+    omitted = tuple(f"{m}." for m in ckpt.get("omitted", ()))  # zoo models leave out modules no output uses
+    result = model.load_state_dict(ckpt["state_dict"], strict=not omitted)  # bf16 weights are cast to float32
+    stray = [k for k in result.missing_keys if not k.startswith(omitted)] + list(result.unexpected_keys)
+    if stray:
+        raise ValueError(f"the checkpoint's weights do not fit {ckpt['model_name']}: {stray[:5]}")
     return model

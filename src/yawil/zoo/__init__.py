@@ -1,0 +1,89 @@
+"""The model zoo: trained models shipped in the repository, each with its card and a probe of fixed frames.
+
+    yawil models --zoo                                  # the zoo's models and their cards' headline figures
+    yawil bench --agent zoo:yilratt-dagger ...          # any command that takes a checkpoint takes zoo:NAME
+    yawil zoo pack runs/x/last.pt --name NAME --data data/town01 --card card.json   # add or replace one
+    yawil zoo check                                     # every model's outputs on its probe frames vs its card
+
+A zoo model is a folder `src/yawil/zoo/NAME/` with
+- `model.pt`: a yawil checkpoint without the training-resume keys, its floating weights stored in bfloat16 and
+  the weights no output depends on left out (YILRatt's layer4: `omitted`); loading restores float32 and leaves
+  the omitted modules at their initialisation;
+- `card.json`: how it was made and what it scored (commands, commit, data, steps, wall time, machine,
+  validation, benchmark results, how to drive it), written by whoever trained it, plus `probe`: the outputs
+  of the packed model on the probe frames;
+- `probe.npz`: a few dataset frames as the agent receives them (camera uint8, speed, raw guidance, command).
+
+Why a probe: a silent change of preprocessing or of a model's code would change what a shipped model does
+without any error; `check_zoo_model` runs the probe through the agent's own input path and compares.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Any
+
+ZOO_DIR = Path(__file__).resolve().parent
+PREFIX = "zoo:"
+WEIGHTS, CARD, PROBE = "model.pt", "card.json", "probe.npz"
+
+
+def zoo_names(root: Path | None = None) -> list[str]:
+    root = root or ZOO_DIR
+    return sorted(p.name for p in root.iterdir() if (p / WEIGHTS).is_file()) if root.is_dir() else []
+
+
+def zoo_dir(name: str, root: Path | None = None) -> Path:
+    root = root or ZOO_DIR
+    if not (root / name / WEIGHTS).is_file():
+        known = ", ".join(zoo_names(root)) or "none"
+        raise ValueError(f"zoo:{name}: no such zoo model (the zoo has: {known})")
+    return root / name
+
+
+def resolve_checkpoint(arg: str | Path) -> Path:
+    """A checkpoint path, or `zoo:NAME` -> that zoo model's weights file."""
+    s = str(arg)
+    return zoo_dir(s[len(PREFIX):]) / WEIGHTS if s.startswith(PREFIX) else Path(s)
+
+
+def read_card(name: str, root: Path | None = None) -> dict[str, Any]:
+    path = zoo_dir(name, root) / CARD
+    try:
+        card = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as err:
+        raise ValueError(f"{path}: not a readable model card ({err})") from None
+    if not isinstance(card, dict):
+        raise ValueError(f"{path}: a model card is a JSON object")
+    return card
+
+
+def card_drive(agent: str) -> tuple[bool | str, float]:
+    """How a zoo model's card says it is driven (`drive`: speed_control, stop_release); (False, 0) otherwise."""
+    if not agent.startswith(PREFIX):
+        return False, 0.0
+    drive = read_card(agent[len(PREFIX):]).get("drive") or {}
+    return drive.get("speed_control", False), float(drive.get("stop_release", 0.0))
+
+
+def headline(name: str) -> dict[str, Any]:
+    """What `yawil models --zoo` prints of a card."""
+    card = read_card(name)
+    ev = card.get("eval100") or {}
+    return {"name": name, "model": card.get("model_name"), "steps": card.get("step"),
+            "eval100": f"{ev['successes']}/{ev['episodes']}" if "successes" in ev else "not measured",
+            "drive": card.get("drive") or {}, "summary": card.get("summary", "")}
+
+
+def table() -> str:
+    """The zoo as `yawil models --zoo` and `yawil zoo list` print it."""
+    names = zoo_names()
+    if not names:
+        return "the zoo is empty"
+    lines = [f"{'name':<24}{'model':<12}{'steps':>7}  {'eval100':<14}drive"]
+    for n in names:
+        h = headline(n)
+        drive = " ".join(f"--{k.replace('_', '-')} {v}" for k, v in h["drive"].items()) or "-"
+        lines.append(f"{n:<24}{h['model']!s:<12}{h['steps']!s:>7}  {h['eval100']:<14}{drive}")
+    return "\n".join(lines)

@@ -1,0 +1,55 @@
+"""`yawil zoo`: the model zoo shipped in the repository (yawil.zoo).
+
+    yawil zoo list                                   # = yawil models --zoo
+    yawil zoo check [NAME ...]                       # each model's outputs on its probe frames vs its card
+    yawil zoo pack CKPT --name NAME --data DATA --card CARD.json   # add or replace a zoo model
+
+`pack` stores the checkpoint compactly (bf16, without weights no output uses), draws probe frames from DATA
+and writes the card: CARD.json's fields (commands, commit, data, wall time, machine, results, `drive`) plus
+what pack measures (probe outputs, stored parameters).
+"""
+
+from __future__ import annotations
+
+import argparse
+from typing import Any
+
+
+def add_parser(subparsers: Any) -> argparse.ArgumentParser:
+    p: argparse.ArgumentParser = subparsers.add_parser(
+        "zoo", help="the trained models shipped with yawil: list, check, pack", description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("action", choices=("list", "check", "pack"))
+    p.add_argument("names", nargs="*", help="check: zoo model names (default all); pack: the checkpoint")
+    p.add_argument("--name", help="pack: the zoo model's name")
+    p.add_argument("--data", help="pack: the dataset the probe frames are drawn from")
+    p.add_argument("--card", help="pack: a JSON file of the card's fields")
+    p.add_argument("--frames", type=int, default=8, help="pack: probe frames (default 8)")
+    return p
+
+
+def run(args: argparse.Namespace) -> int:
+    import json
+    from pathlib import Path
+
+    from yawil import zoo
+    from yawil.zoo import pack
+
+    if args.action == "list":
+        print(zoo.table())
+        return 0
+    if args.action == "check":
+        for n in args.names or zoo.zoo_names():
+            print(f"zoo:{n}: probe outputs within {pack.check_zoo_model(n):.1e} of the card")
+        return 0
+    if len(args.names) != 1 or not (args.name and args.data and args.card):
+        raise ValueError("zoo pack: give one checkpoint and --name, --data and --card")
+    try:
+        card = json.loads(Path(args.card).read_text())
+    except (OSError, json.JSONDecodeError) as err:
+        raise ValueError(f"--card {args.card}: not a readable JSON file ({err})") from None
+    if not isinstance(card, dict):
+        raise ValueError(f"--card {args.card}: expected a JSON object")
+    folder = pack.pack(args.names[0], args.name, Path(args.data), card, count=args.frames)
+    print(f"zoo:{args.name} -> {folder} ({sum(f.stat().st_size for f in folder.iterdir()) / 2**20:.1f} MiB)")
+    return 0

@@ -1,0 +1,147 @@
+"""Making and checking zoo models (`yawil zoo pack`, `yawil zoo check`): compact weights, probe frames, cards.
+
+The catalogue (names, cards, `zoo:NAME` paths) is `yawil.zoo`; this module needs torch and the agent.
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+from yawil.fileio import write_json_atomic
+from yawil.policy.checkpoint import RESUME_KEYS, load_checkpoint, model_from_checkpoint, save_checkpoint
+from yawil.zoo import CARD, PROBE, WEIGHTS, ZOO_DIR, read_card, zoo_dir
+
+PROBE_TOLERANCE = 1e-3  # max |output - card| on the probe frames (float32 on any CPU agrees far closer)
+DROP_KEYS = (*RESUME_KEYS, "scaler", "runtime", "rng_ranks", "raw_state_dict", "ema")
+
+
+def unused_modules(model: torch.nn.Module, inputs: dict[str, torch.Tensor | None]) -> list[str]:
+    """The largest sub-modules none of whose parameters get a gradient from any output: they can be left out."""
+    model.zero_grad(set_to_none=True)
+    out = model(**inputs)
+    parts = [out.actions, out.speed, *(t for t in (out.aux, out.branches) if t is not None), *out.attention]
+    sum(t.float().sum() for t in parts).backward()  # type: ignore[union-attr]
+    dead = {n for n, p in model.named_parameters() if p.grad is None}
+    model.zero_grad(set_to_none=True)
+    found: list[str] = []
+    for name, module in model.named_modules():
+        params = [f"{name}.{n}" if name else n for n, _ in module.named_parameters()]
+        if name and params and all(p in dead for p in params) and not any(name.startswith(f + ".") for f in found):
+            found.append(name)
+    return found
+
+
+def compact_checkpoint(ckpt: dict[str, Any], omitted: list[str]) -> dict[str, Any]:
+    """The checkpoint without resume keys and omitted modules, floating weights in bfloat16."""
+    keep = {k: v for k, v in ckpt.items() if k not in DROP_KEYS}
+    state = {}
+    for k, v in ckpt["state_dict"].items():
+        if any(k.startswith(m + ".") for m in omitted):
+            continue
+        state[k] = v.to(torch.bfloat16) if v.is_floating_point() else v
+    return {**keep, "state_dict": state, "omitted": list(omitted)}
+
+
+def probe_outputs(checkpoint: str | Path, probe: dict[str, np.ndarray]) -> dict[str, list[list[float]]]:
+    """The model's outputs on the probe frames, through the agent's input path (fp32 on the CPU)."""
+    from yawil.agent import Agent
+
+    agent = Agent.from_checkpoint(checkpoint, precision="fp32", channels_last="off")
+    rows: dict[str, list[list[float]]] = {"actions": [], "speed": [], "aux": []}
+    with torch.inference_mode():
+        for i in range(len(probe["speed"])):
+            g = probe["guidance"][i] if agent.kind is not None else None
+            c = int(probe["command"][i]) if agent.uses_command else None
+            out = agent.spec.from_frame(probe["image"][i], float(probe["speed"][i]), g, c).forward(agent.model)
+            rows["actions"].append([round(float(v), 6) for v in out.actions[0]])
+            rows["speed"].append([round(float(v), 6) for v in out.speed[0]])
+            if out.aux is not None:
+                rows["aux"].append([round(float(v), 6) for v in out.aux[0]])
+    if not rows["aux"]:
+        del rows["aux"]
+    return rows
+
+
+def sample_probe(data: Path, kind: str | None, count: int = 8, seed: int = 0) -> dict[str, np.ndarray]:
+    """`count` frames of a dataset, chosen with `seed`: camera, speed, the raw guidance of `kind`, command."""
+    from yawil.data.reader import open_episode
+    from yawil.policy.inputs import guidance_key
+
+    files = sorted(Path(data).rglob("*.h5"))
+    if not files:
+        raise ValueError(f"--data {data}: no episode files (*.h5)")
+    rng = np.random.default_rng(seed)
+    images, speeds, guides, commands = [], [], [], []
+    for fi in sorted(rng.choice(len(files), size=count, replace=len(files) < count).tolist()):
+        with open_episode(files[fi]) as ep:
+            rec = ep[int(rng.integers(len(ep)))]
+        images.append(rec.image)
+        speeds.append(rec.speed)
+        guides.append(getattr(rec, guidance_key(kind)) if kind else np.zeros(0, np.float32))
+        commands.append(int(rec.command))
+    return {"image": np.stack(images).astype(np.uint8), "speed": np.asarray(speeds, np.float32),
+            "guidance": np.stack(guides).astype(np.float32), "command": np.asarray(commands, np.int64)}
+
+
+def read_probe(folder: Path) -> dict[str, np.ndarray]:
+    with np.load(folder / PROBE) as z:
+        return {k: z[k] for k in ("image", "speed", "guidance", "command")}
+
+
+def pack(checkpoint: str | Path, name: str, data: Path, card: dict[str, Any], root: Path | None = None,
+         count: int = 8) -> Path:
+    """Write zoo model `name` from a training checkpoint: compact weights, probe frames, the card with the probe's
+    outputs and the largest difference of the compact model from the checkpoint on them."""
+    from yawil.fileio import atomic_path
+    from yawil.policy.inputs import InputSpec
+    from yawil.policy.runtime import resolve_runtime
+
+    if not name or "/" in name or name.startswith("."):
+        raise ValueError(f"--name {name!r}: expected a plain folder name")
+    ckpt = load_checkpoint(checkpoint)
+    model = model_from_checkpoint(ckpt).eval()
+    probe = sample_probe(Path(data), getattr(model, "guidance", None), count)
+    from yawil.policy.checkpoint import Norm
+
+    spec = InputSpec.of(model, Norm.from_dict(ckpt["norm"]), resolve_runtime("cpu", "fp32", "off"))
+    x = spec.from_frame(probe["image"][0], float(probe["speed"][0]),
+                        probe["guidance"][0] if spec.kind else None, int(probe["command"][0]) if spec.uses_command else None)
+    omitted = unused_modules(model, x.as_dict())
+    folder = (root or ZOO_DIR) / name
+    folder.mkdir(parents=True, exist_ok=True)
+    save_checkpoint(compact_checkpoint(ckpt, omitted), folder / WEIGHTS)
+    with atomic_path(folder / PROBE) as tmp:
+        np.savez_compressed(tmp, **probe)
+    packed, full = probe_outputs(folder / WEIGHTS, probe), probe_outputs(checkpoint, probe)
+    drift = max(abs(a - b) for k in packed for ra, rb in zip(packed[k], full[k], strict=True)
+                for a, b in zip(ra, rb, strict=True))
+    card = {**card, "name": name, "model_name": ckpt["model_name"], "model_config": ckpt["model_config"],
+            "step": ckpt["step"], "omitted": omitted, "weights": "bfloat16",
+            "parameters_stored": sum(v.numel() for v in torch.load(folder / WEIGHTS, weights_only=False)["state_dict"].values()),
+            "probe": {**packed, "bf16_max_diff_from_fp32": round(drift, 6)}}
+    write_json_atomic(folder / CARD, card)
+    return folder
+
+
+def check_zoo_model(name: str, root: Path | None = None) -> float:
+    """The largest |output - card| on the probe frames; ValueError over PROBE_TOLERANCE."""
+    folder = zoo_dir(name, root)
+    want = read_card(name, root).get("probe")
+    if not isinstance(want, dict) or "actions" not in want:
+        raise ValueError(f"{folder / CARD}: no probe outputs (field 'probe.actions')")
+    got = probe_outputs(folder / WEIGHTS, read_probe(folder))
+    worst = 0.0
+    for key, rows in got.items():
+        ref = np.asarray(want.get(key), dtype=np.float64)
+        if ref.shape != np.asarray(rows).shape:
+            raise ValueError(f"{folder / CARD}: probe.{key} has shape {ref.shape}, the model gives {np.asarray(rows).shape}")
+        worst = max(worst, float(np.abs(np.asarray(rows) - ref).max()))
+    if worst > PROBE_TOLERANCE:
+        raise ValueError(f"zoo:{name}: outputs on the probe frames differ from its card by {worst:.2e} "
+                         f"(> {PROBE_TOLERANCE}): preprocessing or the model's code changed")
+    return worst
+

@@ -77,7 +77,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("--profile", default="quick", choices=tuple(PROFILES), help="size (default quick)")
+    p.add_argument("--profile", default="quick", choices=(*PROFILES, "zoo"),
+                   help="size (default quick); zoo: remake the model zoo's models (yawil.pipelines.zoo)")
     p.add_argument("--out", default="runs/reproduce", help="output folder (default runs/reproduce)")
     p.add_argument("--pretrained", default=None, help="local torchvision ResNet34 ImageNet weights (.pth), "
                    "for the 'YILRatt (pretrained)' column; omitted: that column is skipped")  # fmt: skip
@@ -85,12 +86,17 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--device", default=None, choices=("auto", "cpu", "cuda"),
                    help="training device (default: the profile's; gpu: cuda, the others: auto)")
     p.add_argument("--dry-run", action="store_true", help="print the stages and their settings, run nothing")
+    p.add_argument("--zoo-models", default=None, help="--profile zoo: comma-separated recipe names (default all)")
+    p.add_argument("--install", action="store_true",
+                   help="--profile zoo: pack into the repository's zoo (replacing the shipped models), not OUT/zoo")
     return p
 
 
 def run(args: argparse.Namespace) -> int:
     from yawil.stages import run_stage
 
+    if args.profile == "zoo":
+        return run_zoo(args)
     profile = PROFILES[args.profile]
     if args.pretrained and not Path(args.pretrained).is_file():
         raise SystemExit(f"yawil reproduce: --pretrained {args.pretrained}: no such file")
@@ -112,6 +118,25 @@ def run(args: argparse.Namespace) -> int:
     for name, fn in plan:
         run_stage(Path(args.out) / "stages" / f"{name}.json", fn, say, name)
     print(f"[reproduce] report: {Path(args.out) / 'report' / 'report.html'}")
+    return 0
+
+
+def run_zoo(args: argparse.Namespace) -> int:
+    from yawil.pipelines import zoo
+    from yawil.stages import run_stage
+
+    names = [n.strip() for n in args.zoo_models.split(",")] if args.zoo_models else [r.name for r in zoo.RECIPES]
+    for n in names:
+        zoo.recipe(n)  # an unknown name fails before any stage
+    out = Path(args.out)
+    plan = zoo.stages(out, names, device=args.device or "auto", install=args.install)
+    for name, _ in plan:
+        print(f"  stage {name}")
+    if args.dry_run:
+        return 0
+    for name, fn in plan:
+        run_stage(out / "stages" / f"{name}.json", fn, lambda m: print(f"[reproduce zoo] {m}", flush=True), name)
+    print(f"[reproduce zoo] models in {'the repository zoo' if args.install else out / 'zoo'}")
     return 0
 
 

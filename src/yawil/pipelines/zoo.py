@@ -1,0 +1,201 @@
+"""`yawil reproduce --profile zoo`: remake the zoo's models from nothing, with the recipes their cards name.
+
+Stages (each resumable at any kill: a marker per finished stage, and every stage resumes mid-way):
+  1. collect town01's expert data (training weathers, 20,000 frames, seed 0);
+  2. per zoo recipe: train it (`yawil dagger` or `yawil train`), benchmark it on the fixed 100-episode set
+     (`--preset eval100`) and on the demo's episodes, then pack it with its card into OUT/zoo/NAME
+     (`--install` packs into the repository's zoo instead, replacing the shipped model).
+
+Budgets are frames and steps only, so any machine makes the same models (CPU or GPU: `--device`); only the
+wall time differs, and the card records it with the machine. The commands in each card are the equivalent
+single commands of its recipe (docs/training.md, "The model zoo").
+"""
+
+from __future__ import annotations
+
+import json
+import platform
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+EXPERT_FRAMES = 20_000
+EVAL_WORKERS = 2
+
+
+@dataclass(frozen=True)
+class ZooRecipe:
+    """One zoo model: how it is trained (a DAgger run, or plain training), and how it is driven."""
+
+    name: str
+    summary: str
+    model: str
+    steps: int
+    train_args: dict[str, Any] = field(default_factory=dict)  # TrainConfig settings
+    dagger: dict[str, Any] | None = None  # DaggerConfig settings (None: plain `yawil train`)
+    drive: dict[str, Any] = field(default_factory=dict)  # speed_control, stop_release
+
+    def commands(self, data: str, out: str) -> list[str]:
+        """The single commands this recipe equals (for the card)."""
+        drive = " ".join(f"--{k.replace('_', '-')} {v}" for k, v in self.drive.items())
+        collect = f"yawil collect --town town01 --weathers train --frames {EXPERT_FRAMES} --out {data} --workers 2 --seed 0"
+        if self.dagger is not None:
+            d = self.dagger
+            targs = " ".join(f"--train-arg '{k}={json.dumps(v)}'" for k, v in self.train_args.items())
+            train = (f"yawil dagger --out {out} --expert-data {data} --model {self.model} --round0-steps {d['round0_steps']} "
+                     f"--rounds {d['rounds']} --round-frames {d['round_frames']} --round-steps {d['round_steps']} "
+                     f"--workers 2 --threads 2 {targs} --speed-control {d['speed_control']}")
+            ckpt = f"{out}/train/round_{d['rounds']:02d}/last.pt"
+        else:
+            margs = " ".join(f"--model-arg {k}={json.dumps(v)}" for k, v in self.train_args.get("model_args", {}).items())
+            rest = " ".join(f"--{k.replace('_', '-')} {v}" for k, v in self.train_args.items() if k != "model_args")
+            train = (f"yawil train --model {self.model} --data {data} --out {out} --batch-size 64 --max-steps {self.steps} "
+                     f"{margs} {rest} --seed 0")
+            ckpt = f"{out}/last.pt"
+        return [collect, train, f"yawil bench --preset eval100 --agent {ckpt} --workers 2 {drive}".strip()]
+
+
+LEAD_STOP = {"aux": True, "lead_stop": True, "speed_input": False}
+RECIPES: tuple[ZooRecipe, ...] = (
+    ZooRecipe("yilratt-dagger-stop",
+              "YILRatt (the paper's network) + speed-blind aux head with the lead-stop class, weight average, two DAgger "
+              "rounds; driven by its target speed, stopping while the class fires, released after 10 s standing",
+              "yilratt", 1500, train_args={"ema": 0.995, "model_args": LEAD_STOP, "aux_weight": 0.5},
+              dagger={"round0_steps": 750, "rounds": 2, "round_frames": 6000, "round_steps": 375, "speed_control": "stop"},
+              drive={"speed_control": "stop", "stop_release": 10.0}),
+    ZooRecipe("yaw-guided-ema",
+              "the small yaw-guided baseline (CIL perception) + speed-blind aux head, weight average; driven by its "
+              "predicted target speed", "yaw-guided", 750,
+              train_args={"ema": 0.995, "model_args": {"aux": True, "speed_input": False}, "aux_weight": 0.5},
+              drive={"speed_control": "target"}),
+)
+
+
+def recipe(name: str) -> ZooRecipe:
+    for r in RECIPES:
+        if r.name == name:
+            return r
+    raise ValueError(f"zoo recipe {name!r}: expected one of {', '.join(r.name for r in RECIPES)}")
+
+
+def machine() -> str:
+    import os
+
+    import torch
+
+    return (f"{platform.machine()}, {os.cpu_count()} cores, {platform.processor() or 'cpu'}; torch {torch.__version__}"
+            + (f", {torch.cuda.get_device_name(0)}" if torch.cuda.is_available() else ""))
+
+
+def summary_of(results: Path) -> dict[str, Any]:
+    """Successes and failures by reason of a benchmark folder (the card's figures)."""
+    from yawil.bench.records import read_records
+
+    recs = read_records(results / "episodes.jsonl")
+    reasons: dict[str, int] = {}
+    for r in recs:
+        if not r["success"]:
+            reasons[str(r.get("reason"))] = reasons.get(str(r.get("reason")), 0) + 1
+    return {"episodes": len(recs), "successes": sum(bool(r["success"]) for r in recs), "failures": reasons,
+            "results": str(results)}
+
+
+def episode_set(which: str) -> list[Any]:
+    """eval100 (= `yawil bench --preset eval100`) or the demo's episodes (the card's `demo` figure, the guard)."""
+    from yawil.bench.suites import episodes
+    from yawil.pipelines.demo import DemoBudget
+
+    if which == "eval100":
+        return episodes("all", ["training", "new-town-weather"], routes="0:10", seeds=1, weather_rule="cycle")
+    b = DemoBudget()
+    return episodes("all", ["training", "new-town-weather"], list(b.tasks), routes=b.routes, seeds=b.seeds,
+                    weather_rule="cycle")
+
+
+def stages(out: Path, names: list[str], device: str = "auto", install: bool = False,
+           progress: bool = True) -> list[tuple[str, Callable[[], dict[str, Any]]]]:
+    data = out / "data" / "town01"
+
+    def collect_stage() -> dict[str, Any]:
+        from yawil.data.collect import collect
+
+        s = collect(data, town="town01", weathers="train", frames=EXPERT_FRAMES, workers=2, seed=0, progress=progress)
+        return {"frames": s.dataset_frames}
+
+    def train_stage(r: ZooRecipe) -> Callable[[], dict[str, Any]]:
+        def fn() -> dict[str, Any]:
+            t = time.perf_counter()
+            run = out / "runs" / r.name
+            if r.dagger is not None:
+                from yawil.pipelines.dagger import DaggerConfig, DaggerRun
+
+                d = {k: v for k, v in r.dagger.items()}
+                cfg = DaggerConfig(model=r.model, expert_data=str(data), workers=2, threads=0,
+                                   train_args={**r.train_args, "device": device}, **d)
+                ckpt = DaggerRun(run, cfg, progress=progress).run()
+            else:
+                from yawil.learn.config import TrainConfig
+                from yawil.learn.loop import train
+
+                cfg = TrainConfig.from_dict({"model": r.model, "data": [str(data)], "out": str(run), "batch_size": 64,
+                                             "max_steps": r.steps, "seed": 0, "device": device, "progress": progress,
+                                             **r.train_args}, "zoo")
+                train(cfg, resume=(run / "last.pt").is_file())
+                ckpt = run / "last.pt"
+            return {"checkpoint": str(ckpt), "wall_s": round(time.perf_counter() - t)}
+
+        return fn
+
+    def checkpoint_of(r: ZooRecipe) -> str:
+        from yawil.stages import read_marker
+
+        marker = read_marker(out / "stages" / f"train_{r.name}.json")
+        if marker is None:
+            raise ValueError(f"zoo {r.name}: its training stage has not finished")
+        return str(marker["checkpoint"])
+
+    def bench_stage(r: ZooRecipe, which: str) -> Callable[[], dict[str, Any]]:
+        def fn() -> dict[str, Any]:
+            from yawil.bench.runner import AgentSpec, run_benchmark
+
+            spec = AgentSpec(checkpoint_of(r), speed_control=r.drive.get("speed_control", False),
+                             stop_release=float(r.drive.get("stop_release", 0.0)), device="cpu").validate()
+            eps = episode_set(which)
+            t = time.perf_counter()
+            run_benchmark(eps, spec, out / "results" / f"{r.name}_{which}", workers=EVAL_WORKERS, label=r.name,
+                          progress=progress)
+            return {**summary_of(out / "results" / f"{r.name}_{which}"), "wall_s": round(time.perf_counter() - t)}
+
+        return fn
+
+    def pack_stage(r: ZooRecipe) -> Callable[[], dict[str, Any]]:
+        def fn() -> dict[str, Any]:
+            from yawil.policy.checkpoint import load_checkpoint
+            from yawil.provenance import git_commit
+            from yawil.stages import read_marker
+            from yawil.zoo import ZOO_DIR
+            from yawil.zoo.pack import pack
+
+            marks = {k: read_marker(out / "stages" / f"{k}_{r.name}.json") or {} for k in ("train", "eval100", "demo")}
+            metrics = load_checkpoint(checkpoint_of(r))["metrics"]
+            card = {"summary": r.summary, "commands": r.commands(str(data), str(out / "runs" / r.name)),
+                    "made_by": f"yawil reproduce --profile zoo --out {out}", "commit": git_commit(),
+                    "data": {"path": str(data), "town": "town01", "weathers": "train", "frames": EXPERT_FRAMES, "seed": 0},
+                    "wall_s": {"train": marks["train"].get("wall_s"), "eval100": marks["eval100"].get("wall_s")},
+                    "machine": machine(), "validation": metrics[-1] if metrics else {},
+                    "eval100": marks["eval100"], "demo": marks["demo"], "drive": r.drive}
+            folder = pack(checkpoint_of(r), r.name, data, card, root=None if install else out / "zoo")
+            return {"folder": str(folder), "installed": install, "root": str(ZOO_DIR if install else out / "zoo")}
+
+        return fn
+
+    plan: list[tuple[str, Callable[[], dict[str, Any]]]] = [("collect", collect_stage)]
+    for n in names:
+        r = recipe(n)
+        plan.append((f"train_{r.name}", train_stage(r)))
+        plan.append((f"eval100_{r.name}", bench_stage(r, "eval100")))
+        plan.append((f"demo_{r.name}", bench_stage(r, "demo")))
+        plan.append((f"pack_{r.name}", pack_stage(r)))
+    return plan

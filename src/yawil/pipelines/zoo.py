@@ -131,10 +131,9 @@ def stages(out: Path, names: list[str], device: str = "auto", install: bool = Fa
             if r.dagger is not None:
                 from yawil.pipelines.dagger import DaggerConfig, DaggerRun
 
-                d = {k: v for k, v in r.dagger.items()}
-                cfg = DaggerConfig(model=r.model, expert_data=str(data), workers=2, threads=0,
-                                   train_args={**r.train_args, "device": device}, **d)
-                ckpt = DaggerRun(run, cfg, progress=progress).run()
+                dcfg = DaggerConfig(model=r.model, expert_data=str(data), workers=2, threads=0,
+                                    train_args={**r.train_args, "device": device}, **r.dagger)
+                ckpt = DaggerRun(run, dcfg, progress=progress).run()
             else:
                 from yawil.learn.config import TrainConfig
                 from yawil.learn.loop import train

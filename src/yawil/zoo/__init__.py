@@ -21,6 +21,7 @@ without any error; `check_zoo_model` runs the probe through the agent's own inpu
 from __future__ import annotations
 
 import json
+import os
 from pathlib import Path
 from typing import Any
 
@@ -42,7 +43,7 @@ def zoo_dir(name: str, root: Path | None = None) -> Path:
     return root / name
 
 
-def resolve_checkpoint(arg: str | Path) -> Path:
+def resolve_checkpoint(arg: str | os.PathLike[str]) -> Path:
     """A checkpoint path, or `zoo:NAME` -> that zoo model's weights file."""
     s = str(arg)
     return zoo_dir(s[len(PREFIX):]) / WEIGHTS if s.startswith(PREFIX) else Path(s)

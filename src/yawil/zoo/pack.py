@@ -115,7 +115,8 @@ def pack(checkpoint: str | Path, name: str, data: Path, card: dict[str, Any], ro
     folder.mkdir(parents=True, exist_ok=True)
     save_checkpoint(compact_checkpoint(ckpt, omitted), folder / WEIGHTS)
     with atomic_path(folder / PROBE) as tmp:
-        np.savez_compressed(tmp, **probe)
+        np.savez_compressed(tmp, image=probe["image"], speed=probe["speed"], guidance=probe["guidance"],
+                            command=probe["command"])
     packed, full = probe_outputs(folder / WEIGHTS, probe), probe_outputs(checkpoint, probe)
     drift = max(abs(a - b) for k in packed for ra, rb in zip(packed[k], full[k], strict=True)
                 for a, b in zip(ra, rb, strict=True))

@@ -57,13 +57,17 @@ def find_episode(key: str, suite: str = "all") -> Episode:
 
 
 def trace_episode(ep: Episode, spec: AgentSpec, out: str | os.PathLike[str], expert_args: tuple[str, ...] = (),
-                  camera: bool = True) -> TraceResult:
+                  camera: bool = True, progress: bool = False) -> TraceResult:
     """Drive `ep` with `spec`'s agent, the expert (`expert_args`: its settings) shadowing every frame; write the
-    CSV to `out` (through a temporary file, renamed when whole)."""
+    CSV to `out` (through a temporary file, renamed when whole). `progress`: a bar of simulated seconds."""
+    from tqdm import tqdm
+
     from yawil.expert import Expert, ExpertConfig
     from yawil.sim import make_world
 
     world = make_world(backend="embedded")
+    bar = tqdm(total=round(ep.timeout_s, 1), unit="sim s", disable=not progress, dynamic_ncols=True,
+               bar_format="{l_bar}{bar}| {n:.0f}/{total:.0f} simulated s [{elapsed}]")
     try:
         obs = world.reset(ep.scenario(camera), seed=ep.world_seed)
         agent = spec.build(ep.world_seed)
@@ -92,9 +96,11 @@ def trace_episode(ep: Episode, spec: AgentSpec, out: str | os.PathLike[str], exp
                 "" if a_stop is None else round(a_stop, 3), "" if head is None else round(head, 3),
             ])
             obs = world.step(control)
+            bar.update(round(obs.time, 1) - bar.n)
             if tracker.update(obs):
                 break
     finally:
+        bar.close()
         world.close()
     text = io.StringIO(newline="")
     w = csv.writer(text)
@@ -119,6 +125,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--device", default="cpu", choices=("cpu", "cuda", "auto"),
                    help="where a learned agent's model runs (default cpu), as yawil bench --device")
     p.add_argument("--tail", type=int, default=0, help="also print the last N rows")
+    p.add_argument("--no-progress", action="store_true", help="no progress bar (simulated seconds of the episode)")
     return p
 
 
@@ -129,7 +136,7 @@ def run(args: argparse.Namespace) -> int:
                      expert_args=expert_args if args.agent == "expert" else (),
                      device=agent_device(args.device)).validate()
     ep = find_episode(args.episode, args.suite)
-    res = trace_episode(ep, spec, args.out, expert_args)
+    res = trace_episode(ep, spec, args.out, expert_args, progress=not args.no_progress)
     end = "success" if res.success else (res.reason or "unfinished")
     first = res.collisions[0] if res.collisions else None
     hit = "" if first is None else f"; hit {first.get('type')} at t={first.get('t')} s" + (

@@ -72,7 +72,7 @@ def headline(name: str) -> dict[str, Any]:
     """What `yawil models --zoo` prints of a card."""
     card = read_card(name)
     ev = card.get("eval100") or {}
-    return {"name": name, "model": card.get("model_name"), "steps": card.get("step"),
+    return {"name": name, "model": card.get("model_name"), "steps": card.get("steps_total", card.get("step")),
             "eval100": f"{ev['successes']}/{ev['episodes']}" if "successes" in ev else "not measured",
             "drive": card.get("drive") or {}, "summary": card.get("summary", "")}
 

@@ -62,7 +62,7 @@ class Profile:
 
 PROFILES: dict[str, Profile] = {
     "quick": Profile("quick", frames=6000, collect_workers=2, epochs=2, batch_size=64, max_steps=40,
-                     max_minutes=2.0, routes="0:32:4", noise_seeds=2, drive_workers=2),
+                     max_minutes=None, routes="0:32:4", noise_seeds=2, drive_workers=2),
     "standard": Profile("standard", frames=16000, collect_workers=2, epochs=100, batch_size=64, max_steps=600,
                         max_minutes=None, routes=None, noise_seeds=NOISE_SEEDS, drive_workers=2,
                         train_workers=2, train_threads=1),

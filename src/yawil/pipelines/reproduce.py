@@ -13,7 +13,8 @@ Expected time (measured parts in docs/performance.md; the rest extrapolated from
   weeks for the four models; benchmarks about 15 min per condition for the expert and, for a learned agent
   at ~40 steps/s per worker, about 10 h per condition. On one modern GPU the training is about 100x faster
   (a day for all models) and the benchmark is then CPU-bound (render + simulation, a few hours).
-  quick profile: about 1 h on this CPU.
+  quick profile: 200 steps of 128 per model (a budget in steps: the same models on any machine), about 1 h
+  on this CPU with bf16 (several hours without it).
   gpu profile (one GPU node, docs/scale.md): the paper's sizes; collection and benchmarks on every core, training
   on CUDA with bf16 autocast, channels_last and the dataset held on the GPU (`--data-on-device`), the learned
   agents' models on CUDA. Not measured yet (no GPU here); benchmarks/gpu_check.sh measures its parts.
@@ -37,7 +38,7 @@ class ReproduceProfile:
     collect_workers: int  # 0: one per core (os.cpu_count())
     epochs: int
     batch_size: int
-    max_minutes: float | None  # per model
+    max_minutes: float | None  # per model: an explicit cap (None in every profile: budgets are epochs and steps)
     routes: str | None  # benchmark route ids per task (None: all 25)
     seeds: int | None  # None: the protocol's (5 static, 3 dynamic)
     bench_workers: int  # 0: one per core
@@ -49,6 +50,7 @@ class ReproduceProfile:
     channels_last: str = "auto"
     data_on_device: bool = False
     bench_device: str = "cpu"  # the learned agents' models in the benchmarks (AgentSpec.device)
+    max_steps: int | None = None  # per model, besides the epochs (the quick profile's budget)
 
     def workers(self, n: int) -> int:
         """A worker count of the profile: 0 means one per core of this machine."""
@@ -56,7 +58,8 @@ class ReproduceProfile:
 
 
 PROFILES: dict[str, ReproduceProfile] = {
-    "quick": ReproduceProfile("quick", frames=20_000, collect_workers=2, epochs=3, batch_size=128, max_minutes=8.0,
+    "quick": ReproduceProfile("quick", frames=20_000, collect_workers=2, epochs=3, batch_size=128, max_minutes=None,
+                              max_steps=200,
                               routes="0:5", seeds=1, bench_workers=2, experiments_profile="quick", weather_rule="cycle"),
     "paper": ReproduceProfile("paper", frames=200_000, collect_workers=2, epochs=100, batch_size=512, max_minutes=None,
                               routes=None, seeds=None, bench_workers=2, experiments_profile="paper"),
@@ -154,7 +157,8 @@ def train_config(out: Path, p: ReproduceProfile, run_name: str, model: str, weig
     from yawil.learn.config import TrainConfig
 
     return TrainConfig(model=model, data=[str(out / "data" / "town01")], out=str(out / "runs" / run_name),
-                       epochs=p.epochs, batch_size=p.batch_size, max_minutes=p.max_minutes, pretrained=weights,
+                       epochs=p.epochs, batch_size=p.batch_size, max_minutes=p.max_minutes, max_steps=p.max_steps,
+                       pretrained=weights,
                        seed=seed, device=device or p.train_device, precision=p.precision,
                        channels_last=p.channels_last, data_on_device=p.data_on_device,
                        workers=p.workers(0) if p.data_on_device else 1)  # fmt: skip

@@ -318,6 +318,7 @@ class Agent:
         actions = out.actions[0].float().cpu().numpy()
         speed = float(self.norm.speed_inverse(out.speed[0, 0].float()).cpu())
         target_speed = head_target = lead_distance = lead_speed = lead_stop = None
+        ego_speed = max(float(obs.speed), 0.0)
         if out.aux is not None:
             aux = out.aux[0].float().cpu()
             target_speed = head_target = max(0.0, float(self.norm.speed_inverse(aux[0])))
@@ -328,15 +329,13 @@ class Agent:
             if len(aux) > len(AUX_NAMES):
                 lead_stop = float(torch.sigmoid(aux[len(AUX_NAMES)]))
                 fires = self.speed_mode == "stop" and lead_stop > LEAD_STOP_FIRES
-                if fires and self.stop_release is not None:
-                    holding = head_target >= SpeedControl.stop_speed
-                    fires = not self.stop_release.released(max(float(obs.speed), 0.0), holding)
-                elif self.stop_release is not None:
-                    self.stop_release.released(max(float(obs.speed), 0.0), False)
+                if self.stop_release is not None:  # ticked on every step, so a creep runs its course
+                    alone = fires and head_target >= SpeedControl.stop_speed  # the head itself would drive
+                    fires = fires and not self.stop_release.released(ego_speed, alone)
                 if fires:
                     target_speed = 0.0
         if self.speed_control is not None and target_speed is not None:
-            throttle, brake = self.speed_control(target_speed, max(float(obs.speed), 0.0))
+            throttle, brake = self.speed_control(target_speed, ego_speed)
             actions = np.array([actions[0], throttle, brake], dtype=np.float32)
         control = self.post(actions, float(obs.speed))
         self.last = StepOutput(

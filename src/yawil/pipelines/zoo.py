@@ -16,6 +16,7 @@ from __future__ import annotations
 import json
 import platform
 import time
+from collections import Counter
 from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -39,7 +40,9 @@ class ZooRecipe:
 
     def commands(self, data: str, out: str) -> list[str]:
         """The single commands this recipe equals (for the card)."""
-        drive = " ".join(f"--{k.replace('_', '-')} {v}" for k, v in self.drive.items())
+        from yawil.zoo import drive_flags
+
+        drive = drive_flags(self.drive)
         collect = f"yawil collect --town town01 --weathers train --frames {EXPERT_FRAMES} --out {data} --workers 2 --seed 0"
         if self.dagger is not None:
             d = self.dagger
@@ -94,11 +97,8 @@ def summary_of(results: Path) -> dict[str, Any]:
     from yawil.bench.records import read_records
 
     recs = read_records(results / "episodes.jsonl")
-    reasons: dict[str, int] = {}
-    for r in recs:
-        if not r["success"]:
-            reasons[str(r.get("reason"))] = reasons.get(str(r.get("reason")), 0) + 1
-    return {"episodes": len(recs), "successes": sum(bool(r["success"]) for r in recs), "failures": reasons,
+    reasons = Counter(str(r.get("reason")) for r in recs if not r["success"])
+    return {"episodes": len(recs), "successes": sum(bool(r["success"]) for r in recs), "failures": dict(reasons),
             "results": str(results)}
 
 
@@ -178,14 +178,15 @@ def stages(out: Path, names: list[str], device: str = "auto", install: bool = Fa
             from yawil.zoo.pack import pack
 
             marks = {k: read_marker(out / "stages" / f"{k}_{r.name}.json") or {} for k in ("train", "eval100", "demo")}
-            metrics = load_checkpoint(checkpoint_of(r))["metrics"]
+            ckpt = checkpoint_of(r)
+            metrics = load_checkpoint(ckpt)["metrics"]
             card = {"summary": r.summary, "commands": r.commands(str(data), str(out / "runs" / r.name)),
                     "made_by": f"yawil reproduce --profile zoo --out {out}", "commit": git_commit(),
                     "data": {"path": str(data), "town": "town01", "weathers": "train", "frames": EXPERT_FRAMES, "seed": 0},
                     "wall_s": {"train": marks["train"].get("wall_s"), "eval100": marks["eval100"].get("wall_s")},
                     "machine": machine(), "validation": metrics[-1] if metrics else {},
                     "eval100": marks["eval100"], "demo": marks["demo"], "drive": r.drive}
-            folder = pack(checkpoint_of(r), r.name, data, card, root=None if install else out / "zoo")
+            folder = pack(ckpt, r.name, data, card, root=None if install else out / "zoo")
             return {"folder": str(folder), "installed": install, "root": str(ZOO_DIR if install else out / "zoo")}
 
         return fn

@@ -68,6 +68,11 @@ def card_drive(agent: str) -> tuple[bool | str, float]:
     return drive.get("speed_control", False), float(drive.get("stop_release", 0.0))
 
 
+def drive_flags(drive: dict[str, Any]) -> str:
+    """A card's `drive` as the command-line flags it stands for."""
+    return " ".join(f"--{k.replace('_', '-')} {v}" for k, v in drive.items())
+
+
 def headline(name: str) -> dict[str, Any]:
     """What `yawil models --zoo` prints of a card."""
     card = read_card(name)
@@ -85,6 +90,6 @@ def table() -> str:
     lines = [f"{'name':<24}{'model':<12}{'steps':>7}  {'eval100':<14}drive"]
     for n in names:
         h = headline(n)
-        drive = " ".join(f"--{k.replace('_', '-')} {v}" for k, v in h["drive"].items()) or "-"
+        drive = drive_flags(h["drive"]) or "-"
         lines.append(f"{n:<24}{h['model']!s:<12}{h['steps']!s:>7}  {h['eval100']:<14}{drive}")
     return "\n".join(lines)

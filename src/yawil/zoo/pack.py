@@ -12,7 +12,7 @@ import numpy as np
 import torch
 
 from yawil.fileio import write_json_atomic
-from yawil.policy.checkpoint import RESUME_KEYS, load_checkpoint, model_from_checkpoint, save_checkpoint
+from yawil.policy.checkpoint import RESUME_KEYS, load_checkpoint, save_checkpoint
 from yawil.zoo import CARD, PROBE, WEIGHTS, ZOO_DIR, read_card, zoo_dir
 
 PROBE_TOLERANCE = 1e-3  # max |output - card| on the probe frames (float32 on any CPU agrees far closer)
@@ -46,17 +46,26 @@ def compact_checkpoint(ckpt: dict[str, Any], omitted: list[str]) -> dict[str, An
     return {**keep, "state_dict": state, "omitted": list(omitted)}
 
 
-def probe_outputs(checkpoint: str | Path, probe: dict[str, np.ndarray]) -> dict[str, list[list[float]]]:
-    """The model's outputs on the probe frames, through the agent's input path (fp32 on the CPU)."""
+def probe_agent(checkpoint: str | Path) -> Any:
+    """The checkpoint's agent as the probe runs it: fp32 on the CPU, no channels_last (the same on any CPU)."""
     from yawil.agent import Agent
 
-    agent = Agent.from_checkpoint(checkpoint, precision="fp32", channels_last="off")
+    return Agent.from_checkpoint(checkpoint, precision="fp32", channels_last="off")
+
+
+def probe_inputs(agent: Any, probe: dict[str, np.ndarray], i: int) -> Any:
+    """Probe frame `i` through the agent's own input path."""
+    g = probe["guidance"][i] if agent.kind is not None else None
+    c = int(probe["command"][i]) if agent.uses_command else None
+    return agent.spec.from_frame(probe["image"][i], float(probe["speed"][i]), g, c)
+
+
+def probe_outputs(agent: Any, probe: dict[str, np.ndarray]) -> dict[str, list[list[float]]]:
+    """The agent's network outputs on the probe frames (a `probe_agent`)."""
     rows: dict[str, list[list[float]]] = {"actions": [], "speed": [], "aux": []}
     with torch.inference_mode():
         for i in range(len(probe["speed"])):
-            g = probe["guidance"][i] if agent.kind is not None else None
-            c = int(probe["command"][i]) if agent.uses_command else None
-            out = agent.spec.from_frame(probe["image"][i], float(probe["speed"][i]), g, c).forward(agent.model)
+            out = probe_inputs(agent, probe, i).forward(agent.model)
             rows["actions"].append([round(float(v), 6) for v in out.actions[0]])
             rows["speed"].append([round(float(v), 6) for v in out.speed[0]])
             if out.aux is not None:
@@ -97,32 +106,26 @@ def pack(checkpoint: str | Path, name: str, data: Path, card: dict[str, Any], ro
     """Write zoo model `name` from a training checkpoint: compact weights, probe frames, the card with the probe's
     outputs and the largest difference of the compact model from the checkpoint on them."""
     from yawil.fileio import atomic_path
-    from yawil.policy.inputs import InputSpec
-    from yawil.policy.runtime import resolve_runtime
 
     if not name or "/" in name or name.startswith("."):
         raise ValueError(f"--name {name!r}: expected a plain folder name")
     ckpt = load_checkpoint(checkpoint)
-    model = model_from_checkpoint(ckpt).eval()
-    probe = sample_probe(Path(data), getattr(model, "guidance", None), count)
-    from yawil.policy.checkpoint import Norm
-
-    spec = InputSpec.of(model, Norm.from_dict(ckpt["norm"]), resolve_runtime("cpu", "fp32", "off"))
-    x = spec.from_frame(probe["image"][0], float(probe["speed"][0]),
-                        probe["guidance"][0] if spec.kind else None, int(probe["command"][0]) if spec.uses_command else None)
-    omitted = unused_modules(model, x.as_dict())
+    full_agent = probe_agent(checkpoint)
+    probe = sample_probe(Path(data), full_agent.kind, count)
+    omitted = unused_modules(full_agent.model, probe_inputs(full_agent, probe, 0).as_dict())
     folder = (root or ZOO_DIR) / name
     folder.mkdir(parents=True, exist_ok=True)
-    save_checkpoint(compact_checkpoint(ckpt, omitted), folder / WEIGHTS)
+    compact = compact_checkpoint(ckpt, omitted)
+    save_checkpoint(compact, folder / WEIGHTS)
     with atomic_path(folder / PROBE) as tmp:
         np.savez_compressed(tmp, image=probe["image"], speed=probe["speed"], guidance=probe["guidance"],
                             command=probe["command"])
-    packed, full = probe_outputs(folder / WEIGHTS, probe), probe_outputs(checkpoint, probe)
+    packed, full = probe_outputs(probe_agent(folder / WEIGHTS), probe), probe_outputs(full_agent, probe)
     drift = max(abs(a - b) for k in packed for ra, rb in zip(packed[k], full[k], strict=True)
                 for a, b in zip(ra, rb, strict=True))
     card = {**card, "name": name, "model_name": ckpt["model_name"], "model_config": ckpt["model_config"],
             "step": ckpt["step"], "omitted": omitted, "weights": "bfloat16",
-            "parameters_stored": sum(v.numel() for v in torch.load(folder / WEIGHTS, weights_only=False)["state_dict"].values()),
+            "parameters_stored": sum(v.numel() for v in compact["state_dict"].values()),
             "probe": {**packed, "bf16_max_diff_from_fp32": round(drift, 6)}}
     write_json_atomic(folder / CARD, card)
     return folder
@@ -134,7 +137,7 @@ def check_zoo_model(name: str, root: Path | None = None) -> float:
     want = read_card(name, root).get("probe")
     if not isinstance(want, dict) or "actions" not in want:
         raise ValueError(f"{folder / CARD}: no probe outputs (field 'probe.actions')")
-    got = probe_outputs(folder / WEIGHTS, read_probe(folder))
+    got = probe_outputs(probe_agent(folder / WEIGHTS), read_probe(folder))
     worst = 0.0
     for key, rows in got.items():
         ref = np.asarray(want.get(key), dtype=np.float64)

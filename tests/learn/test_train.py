@@ -444,6 +444,38 @@ def test_augmentation_matches_torchvision_v2() -> None:
         torch.testing.assert_close(got[i : i + 1], ref, atol=1e-5, rtol=0)
 
 
+def test_colour_augmentation_matches_torchvision_and_leaves_the_old_draws_alone() -> None:
+    from torchvision.transforms.v2 import functional as TF
+
+    img = torch.rand(1, 3, 40, 60)
+    only: dict[str, Any] = dict(brightness_p=0.0, contrast_p=0.0, blur_p=0.0, noise_p=0.0, dropout_p=0.0)
+    for op, fn in (
+        ("saturation", lambda x, f: TF.adjust_saturation(x, f)),
+        ("gamma", lambda x, f: TF.adjust_gamma(x, f)),
+    ):
+        out = augment_batch(img, AugmentConfig(**{**only, f"{op}_p": 1.0}), torch.Generator().manual_seed(0))
+        gen = torch.Generator().manual_seed(0)
+        torch.rand((10, 1), generator=gen)  # the standard operations' draws come first
+        v = torch.rand((8, 1), generator=gen)
+        strength = 0.5 if op == "saturation" else 0.4
+        factor = 1 - strength + 2 * strength * float(v[1 if op == "saturation" else 7, 0])
+        torch.testing.assert_close(out, fn(img, factor), atol=1e-6, rtol=0)
+    out = augment_batch(img, AugmentConfig(**{**only, "gain_p": 1.0}), torch.Generator().manual_seed(0))
+    ratio = (out / img)[0].flatten(1)
+    assert torch.all(ratio.std(dim=1)[out[0].flatten(1).max(dim=1).values < 1] < 1e-5)  # one gain per channel
+    assert ratio.mean(dim=1).unique().numel() == 3 and torch.all((ratio > 0.8 - 1e-6) & (ratio < 1.2 + 1e-6))
+    # with the colour operations on, the standard operations draw and act exactly as before
+    images = torch.rand(80, 3, 20, 30, generator=torch.Generator().manual_seed(1))
+    gen_a, gen_b = torch.Generator().manual_seed(3), torch.Generator().manual_seed(3)
+    base = augment_batch(images, AugmentConfig(), gen_a)
+    colour = AugmentConfig(saturation_p=1.0, gain_p=1.0, gamma_p=1.0, saturation=0.0, gain=0.0, gamma=0.0)
+    torch.testing.assert_close(augment_batch(images, colour, gen_b), base, atol=1e-6, rtol=0)  # identity strengths
+    torch.rand((8, 80), generator=gen_a)
+    assert torch.equal(torch.rand(4, generator=gen_a), torch.rand(4, generator=gen_b))  # and draw once more
+    with pytest.raises(ValueError, match="gamma"):
+        AugmentConfig(gamma=1.0)
+
+
 def test_yawil_train_command_and_resume(tmp_path: Path, real_data: Path) -> None:
     from yawil.cli import main
 

@@ -1,6 +1,12 @@
 """Photometric augmentation of training batches (the paper: blur, noise, brightness; plus contrast and
 pixel dropout as CIL/CILRS did), vectorised over the batch with per-sample random parameters.
 
+Three colour operations are off by default (probability 0) and can be switched on: saturation, a gain per
+colour channel (a colour cast, CIL's `Multiply((0.8, 1.2), per_channel)`) and gamma. Why: a learned agent's
+failures concentrate in the sunset weathers, whose dark orange road the brightness and contrast factors do
+not imitate (docs/experiments.md, fifth session). Their parameters are drawn after every draw of the other
+operations, so a configuration that leaves them off augments exactly as before, bit for bit.
+
 torchvision.transforms.v2 draws one set of parameters per call, so applied to a batch it would give every
 sample the same blur and brightness. Here the parameters are drawn per sample from a seeded
 `torch.Generator` and the operations are the same formulas as `torchvision.transforms.v2.functional`
@@ -40,6 +46,12 @@ class AugmentConfig:
     noise_std: float = 0.05  # std drawn in [0, noise_std], in [0, 1] pixel units
     dropout_p: float = 0.2
     dropout: float = 0.1  # fraction of pixels zeroed, drawn in [0, dropout]
+    saturation_p: float = 0.0
+    saturation: float = 0.5  # factor drawn in [1 - s, 1 + s] (0: grey, 1: unchanged)
+    gain_p: float = 0.0
+    gain: float = 0.2  # one factor per colour channel, each drawn in [1 - g, 1 + g]
+    gamma_p: float = 0.0
+    gamma: float = 0.4  # exponent drawn in [1 - g, 1 + g] (> 1 darkens the mid-tones)
 
     def __post_init__(self) -> None:
         for f in fields(self):
@@ -56,6 +68,9 @@ class AugmentConfig:
             raise ValueError(f"augment.blur_sigma={self.blur_sigma!r}: must be >= 0.1")
         if self.blur_kernel < 3 or self.blur_kernel % 2 == 0:
             raise ValueError(f"augment.blur_kernel={self.blur_kernel!r}: must be an odd integer >= 3")
+        for name in ("saturation", "gain", "gamma"):
+            if not 0.0 <= getattr(self, name) < 1.0:
+                raise ValueError(f"augment.{name}={getattr(self, name)!r}: must be in [0, 1)")
         if self.noise_std < 0.0 or not 0.0 <= self.dropout <= 1.0:
             raise ValueError(
                 f"augment.noise_std={self.noise_std!r} must be >= 0 and augment.dropout={self.dropout!r} in [0, 1]"
@@ -92,8 +107,9 @@ def augment_batch(
 
     The per-sample parameters are drawn first, all of them, as one [10, B] uniform tensor (rows: chosen?
     and strength of brightness, contrast, blur, noise, dropout); then the pixel noise and dropout masks of
-    the chosen samples. Whole-batch passes are in place: at 512 x 3 x 88 x 200 (108 MB) allocation, not
-    arithmetic, is what costs.
+    the chosen samples; then, only when a colour operation is on, their [8, B] uniforms (rows: chosen? and
+    strength of saturation, chosen? and three channel gains, chosen? and exponent of gamma). Whole-batch
+    passes are in place: at 512 x 3 x 88 x 200 (108 MB) allocation, not arithmetic, is what costs.
     """
     if images.ndim != 4 or images.shape[1] != 3:
         raise ValueError(f"augment_batch expects images [B, 3, H, W], got shape {tuple(images.shape)}")
@@ -106,7 +122,30 @@ def augment_batch(
     u = torch.rand((10, b), generator=generator, device=out.device, dtype=torch.float32)
     for lo in range(0, b, CHUNK):  # chunks that stay in the CPU caches: faster than whole-batch passes at 512
         _augment_chunk(out[lo : lo + CHUNK], u[:, lo : lo + CHUNK], cfg, generator)
+    if max(cfg.saturation_p, cfg.gain_p, cfg.gamma_p) > 0.0:
+        v = torch.rand((8, b), generator=generator, device=out.device, dtype=torch.float32)
+        for lo in range(0, b, CHUNK):
+            _colour_chunk(out[lo : lo + CHUNK], v[:, lo : lo + CHUNK], cfg)
     return out
+
+
+def _colour_chunk(out: torch.Tensor, v: torch.Tensor, cfg: AugmentConfig) -> None:
+    """Saturation, channel gains and gamma, in place, with the per-sample uniforms `v` [8, b]."""
+    b = out.shape[0]
+    view = (b, 1, 1, 1)
+    # saturation: adjust_saturation = clamp(factor * img + (1 - factor) * grayscale(img)), per pixel
+    factor = torch.where(v[0] < cfg.saturation_p, 1 - cfg.saturation + 2 * cfg.saturation * v[1], 1.0).to(out.dtype)
+    luma = torch.tensor(_LUMA, dtype=out.dtype, device=out.device).view(1, 3, 1, 1)
+    gray = (out * luma).sum(dim=1, keepdim=True)
+    out.mul_(factor.view(view)).add_(gray * (1 - factor).view(view)).clamp_(0.0, 1.0)
+    # channel gains: a colour cast, one factor per channel
+    gains = torch.where(v[2] < cfg.gain_p, 1 - cfg.gain + 2 * cfg.gain * v[3:6], 1.0).to(out.dtype)  # [3, b]
+    out.mul_(gains.t().reshape(b, 3, 1, 1)).clamp_(0.0, 1.0)
+    # gamma: adjust_gamma = img ** gamma (gain 1)
+    idx = (v[6] < cfg.gamma_p).nonzero().squeeze(1)
+    if idx.numel():
+        exponent = (1 - cfg.gamma + 2 * cfg.gamma * v[7][idx]).view(-1, 1, 1, 1).to(out.dtype)
+        out[idx] = out[idx].pow(exponent).clamp_(0.0, 1.0)
 
 
 def _augment_chunk(out: torch.Tensor, u: torch.Tensor, cfg: AugmentConfig, gen: torch.Generator) -> None:

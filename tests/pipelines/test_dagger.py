@@ -10,6 +10,7 @@ from typing import Any
 
 import numpy as np
 import pytest
+import yaml
 
 from scripted_world import LineWorld, small_cfg
 from yawil.bench.select import BenchmarkRoutes, validation_episodes
@@ -144,6 +145,8 @@ def test_dagger_config_is_checked() -> None:
         DaggerConfig(beta=(0.5, 2.0))
     with pytest.raises(ValueError, match="round0"):
         DaggerConfig(round0="x.pt")
+    with pytest.raises(ValueError, match="round_lr"):
+        DaggerConfig(round_lr=0.0)
     assert DaggerConfig(beta=(0.5, 0.25)).beta_of(1) == 0.5 and DaggerConfig(beta=(0.5, 0.25)).beta_of(5) == 0.25
     with pytest.raises(ValueError, match="aux head"):
         DaggerConfig(speed_control=True)  # the target speed comes from the aux head
@@ -185,7 +188,7 @@ def test_the_dagger_learner_drives_as_benched(tiny_checkpoint: Any) -> None:
 def test_a_tiny_dagger_run_end_to_end_and_resumed(tmp_path: Path) -> None:
     """Embedded town01, the small yaw-guided net: round 0 and one on-policy round, then a rerun skips all."""
     cfg = DaggerConfig(model="yaw-guided", expert_frames=30, rounds=1, round_frames=20, episode_frames=40,
-                       round0_steps=2, round_steps=2, batch_size=8, workers=1, threads=1,
+                       round0_steps=2, round_steps=2, batch_size=8, workers=1, threads=1, round_lr=2e-4,
                        train_args={"val_fraction": 0.5, "augment": {"enabled": False}})
     out = tmp_path / "dg"
     # two expert episodes are needed for a split: 30 frames at <= 40 per episode
@@ -199,6 +202,8 @@ def test_a_tiny_dagger_run_end_to_end_and_resumed(tmp_path: Path) -> None:
     assert all(e.episode >= 1000 * 100_000 for e in m.episodes)  # round seeds keep the ids apart
     marker = json.loads((out / "stages" / "train_01.json").read_text())
     assert marker["steps"] == 2 and marker["init_from"].endswith("round_00/last.pt")
+    lrs = [yaml.safe_load((out / "train" / f"round_0{r}" / "config.yaml").read_text())["lr"] for r in (0, 1)]
+    assert lrs == [cfg.lr, 2e-4]  # round 0 trains at --lr, the fine-tuning round at --round-lr
     logs: list[str] = []
     DaggerRun(out, cfg, log=logs.append, progress=False).run()
     assert sum("skipped" in line for line in logs) == 4

@@ -65,6 +65,9 @@ class DaggerConfig:
     takeover_seconds: float = 3.0
     batch_size: int = 64
     lr: float = 1e-3
+    # fine-tuning rounds' initial rate (None: lr). Why: at 1e-3 a fresh Adam's first steps on the aggregate
+    # broke a good round-0 policy's steering (0 of 100 after round 1; docs/experiments.md, fourth session)
+    round_lr: float | None = None
     workers: int = 2  # collection processes
     executor: str = "local"  # where they run (yawil.executor): changes no result, so a resume may change it
     ray_address: str | None = None
@@ -91,6 +94,7 @@ class DaggerConfig:
         need(self.round0 is not None or self.round0_steps >= 1, "round0_steps", ">= 1 unless --round0 is given")
         need(self.round0 is None or self.expert_data is not None, "round0", "given together with --expert-data")
         need(self.lr > 0 and math.isfinite(self.lr), "lr", "a number > 0")
+        need(self.round_lr is None or (self.round_lr > 0 and math.isfinite(self.round_lr)), "round_lr", "a number > 0")
         need(isinstance(self.train_args, dict), "train_args", "a mapping of train settings")
         try:
             mode = speed_control_mode(self.speed_control)
@@ -261,6 +265,8 @@ class DaggerRun:
             init = None
         else:
             steps, init = cfg.round_steps, str(self.policy(r - 1))
+            if cfg.round_lr is not None:
+                base["lr"] = cfg.round_lr
         run_dir = self.round_run(r)
         tc = TrainConfig.from_dict({**base, "data": self.data_roots(r), "out": str(run_dir), "max_steps": steps,
                                     "init_from": init}, "dagger")
@@ -299,7 +305,9 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--takeover-stall", type=float, default=d.takeover_stall, help="s standing while the expert would drive")
     p.add_argument("--takeover-seconds", type=float, default=d.takeover_seconds, help="s the expert keeps the wheel")
     p.add_argument("--batch-size", type=int, default=d.batch_size)
-    p.add_argument("--lr", type=float, default=d.lr)
+    p.add_argument("--lr", type=float, default=d.lr, help=f"initial learning rate (default {d.lr:g})")
+    p.add_argument("--round-lr", type=float, default=None,
+                   help="initial learning rate of the fine-tuning rounds (default: --lr)")
     p.add_argument("--workers", type=int, default=d.workers, help="collection processes (default 2)")
     add_executor_arguments(p)
     p.add_argument("--threads", type=int, default=d.threads, help="torch threads of training (default 0: all cores)")
@@ -347,7 +355,7 @@ def run(args: argparse.Namespace) -> int:
             train_mode=args.train_mode, beta=_floats(args.beta, "--beta"), segment_seconds=args.segment_seconds,
             takeover_lateral=args.takeover_lateral, takeover_decel=args.takeover_decel,
             takeover_stall=args.takeover_stall, takeover_seconds=args.takeover_seconds, batch_size=args.batch_size,
-            lr=args.lr, workers=args.workers, executor=executor_from_args(args).kind, ray_address=args.ray_address,
+            lr=args.lr, round_lr=args.round_lr, workers=args.workers, executor=executor_from_args(args).kind, ray_address=args.ray_address,
             threads=args.threads, train_args=_train_args(args.train_arg),
             round0=args.round0, expert_data=args.expert_data, speed_control=args.speed_control,
             stop_release=args.stop_release,

@@ -13,12 +13,14 @@ from pathlib import Path
 import pytest
 
 from yawil import __version__
+from yawil.bench.metrics import FAILURE_REASONS
 from yawil.bench.records import PROTOCOL, EpisodeLog, check_run_info
 from yawil.bench.report import (
     load_results,
     success_table,
     summary_table,
     violations_table,
+    weather_table,
     write_report,
 )
 from yawil.cli import main
@@ -84,6 +86,32 @@ def test_tables_and_files(tmp_path: Path) -> None:
     assert (tmp_path / "rep" / "trajectories_training.png").stat().st_size > 1000
 
 
+def test_weather_table_splits_each_condition_by_weather(tmp_path: Path) -> None:
+    folder = tmp_path / "a"
+    check_run_info(folder, {"agent": "yilratt", "agent_options": {}, "label": "yilratt"})
+    with EpisodeLog(folder) as log:
+        # training: 3 of 4 at ClearNoon, 1 of 4 at ClearSunset (3 static collisions); new town: one weather
+        for weather, cond, oks in (("ClearSunset", "training", [1, 0, 0, 0]), ("ClearNoon", "training", [1, 1, 1, 0]),
+                                   ("SoftRainSunset", "new-town-weather", [0, 1])):
+            for rid, ok in enumerate(oks):
+                log.append({"protocol": PROTOCOL, "suite": "nocrash", "task": "straight", "condition": cond,
+                            "weather": weather, "route_id": rid, "seed": 0, "success": bool(ok),
+                            "reason": None if ok else "collision_static", "km_driven": 0.2,
+                            "lane_opposite": 0, "lane_offroad": 0, "red_lights": 0, "lights_passed": 0})
+    table = weather_table([load_results(folder)])
+    static = 6 + FAILURE_REASONS.index("collision_static")
+    rows = [(r[0], r[1], r[3], r[4], r[5], r[static]) for r in table.rows]
+    assert rows == [  # the condition's own weather order (ClearNoon first), then the new town
+        ("Training Conditions", "ClearNoon", "4", "3", "75.0", "1"),
+        ("Training Conditions", "ClearSunset", "4", "1", "25.0", "3"),
+        ("New Town02 & Weather", "SoftRainSunset", "2", "1", "50.0", "1"),
+    ]
+    assert table.records[1] == {"condition": "training", "weather": "ClearSunset", "agent": "yilratt", "episodes": 4,
+                                "success": 1, "failures": {k: 3 * (k == "collision_static") for k in FAILURE_REASONS}}
+    summary = json.loads(write_report([folder], tmp_path / "rep")["summary.json"].read_text(encoding="utf-8"))
+    assert [r["weather"] for r in summary["weathers"]["rows"]] == ["ClearNoon", "ClearSunset", "SoftRainSunset"]
+
+
 def test_summary_json_holds_numbers(tmp_path: Path) -> None:
     a, b = tmp_path / "a", tmp_path / "b"
     _write(a, "expert", {"straight": [4, 3, 4, 4, 4], "dense": [4, 3, 2]})
@@ -143,7 +171,7 @@ def test_html_has_no_markdown_and_escapes(tmp_path: Path) -> None:
     assert "`" not in page
     assert "<b>agent</b>" not in page and "&lt;b&gt;agent&lt;/b&gt; &amp; co" in page
     assert f"<code>{a}</code>" in page
-    assert page.startswith("<!DOCTYPE html>") and page.count("<table>") == 4
+    assert page.startswith("<!DOCTYPE html>") and page.count("<table>") == 5
 
 
 def test_git_commit(tmp_path: Path) -> None:

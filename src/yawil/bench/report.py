@@ -194,6 +194,35 @@ def outcome_table(sets: Sequence[ResultSet]) -> Table:
     return Table("Episode outcomes (all seeds)", header, rows, key="outcomes", records=records)
 
 
+def weather_table(sets: Sequence[ResultSet]) -> Table:
+    """Successes and failure reasons per condition and weather, every task and seed together.
+
+    Why: a learned agent's failures can gather in one light (the sunset weathers' dark, orange roads) while
+    Table III, per task, spreads them out; the protocol drives every route in every weather, so each weather
+    of a condition holds the same routes and the rows compare like with like.
+    """
+    conds, _ = _present(sets)
+    rows = []
+    records: list[dict[str, Any]] = []
+    for c in conds:
+        order = CONDITIONS[c].weathers
+        driven = {r["weather"] for rs in sets for r in rs.records if r["condition"] == c}
+        for w in sorted(driven, key=lambda w: (order.index(w) if w in order else len(order), w)):
+            for rs in sets:
+                recs = [r for r in rs.records if r["condition"] == c and r["weather"] == w]
+                if not recs:
+                    continue
+                counts = failure_counts(recs)
+                rows.append([CONDITIONS[c].title, w, rs.label, str(len(recs)), str(counts["success"]),
+                             f"{100.0 * counts['success'] / len(recs):.1f}"]
+                            + [str(counts.get(k, 0)) for k in FAILURE_REASONS])
+                records.append({"condition": c, "weather": w, "agent": rs.label, "episodes": len(recs),
+                                "success": counts["success"],
+                                "failures": {k: counts.get(k, 0) for k in FAILURE_REASONS}})
+    header = ["Condition", "Weather", "Agent", "Episodes", "Success", "Success %", *FAILURE_REASONS]
+    return Table("Episode outcomes per weather (all tasks and seeds)", header, rows, key="weathers", records=records)
+
+
 def summary_table(sets: Sequence[ResultSet]) -> Table:
     """One row per agent over all its episodes: the figures a recipe comparison needs (docs/experiments.md)."""
     from yawil.bench.metrics import lane_violations_per_km, light_violation_ratio
@@ -413,7 +442,7 @@ def write_report(
     prov = provenance(command)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    tables = [success_table(sets), violations_table(sets), outcome_table(sets), summary_table(sets)]
+    tables = [success_table(sets), violations_table(sets), outcome_table(sets), weather_table(sets), summary_table(sets)]
     images: list[tuple[str, str, bytes]] = [("success.png", "Success rate per task", success_plot(sets))]
     conds, _ = _present(sets)
     for c in conds:

@@ -188,10 +188,15 @@ def outcome_table(sets: Sequence[ResultSet]) -> Table:
                     + [str(counts["rear_end"]), f"{km:.1f}"]
                 )
                 records.append({"condition": c, "task": t, "agent": rs.label, "episodes": len(recs),
-                                "success": counts["success"], "failures": {k: counts.get(k, 0) for k in FAILURE_REASONS},
+                                "success": counts["success"], "failures": _failures(counts),
                                 "rear_end": counts["rear_end"], "km_driven": km})
     header = ["Condition", "Task", "Agent", "Episodes", "Success", *FAILURE_REASONS, "of which rear-end", "km driven"]
     return Table("Episode outcomes (all seeds)", header, rows, key="outcomes", records=records)
+
+
+def _failures(counts: Mapping[str, int]) -> dict[str, int]:
+    """Episodes per failure reason, every reason named (0 where none), in FAILURE_REASONS' order."""
+    return {k: counts.get(k, 0) for k in FAILURE_REASONS}
 
 
 def weather_table(sets: Sequence[ResultSet]) -> Table:
@@ -213,12 +218,11 @@ def weather_table(sets: Sequence[ResultSet]) -> Table:
                 if not recs:
                     continue
                 counts = failure_counts(recs)
+                failures = _failures(counts)
                 rows.append([CONDITIONS[c].title, w, rs.label, str(len(recs)), str(counts["success"]),
-                             f"{100.0 * counts['success'] / len(recs):.1f}"]
-                            + [str(counts.get(k, 0)) for k in FAILURE_REASONS])
+                             f"{100.0 * counts['success'] / len(recs):.1f}", *map(str, failures.values())])
                 records.append({"condition": c, "weather": w, "agent": rs.label, "episodes": len(recs),
-                                "success": counts["success"],
-                                "failures": {k: counts.get(k, 0) for k in FAILURE_REASONS}})
+                                "success": counts["success"], "failures": failures})
     header = ["Condition", "Weather", "Agent", "Episodes", "Success", "Success %", *FAILURE_REASONS]
     return Table("Episode outcomes per weather (all tasks and seeds)", header, rows, key="weathers", records=records)
 
@@ -240,7 +244,7 @@ def summary_table(sets: Sequence[ResultSet]) -> Table:
             + [str(counts["rear_end"]), f"{lanes:.2f}", f"{lights:.2f}"]
         )
         records.append({"agent": rs.label, "episodes": len(rs.records), "success": counts["success"],
-                        "failures": {k: counts.get(k, 0) for k in FAILURE_REASONS}, "rear_end": counts["rear_end"],
+                        "failures": _failures(counts), "rear_end": counts["rear_end"],
                         "lane_violations_per_km": _num(lanes), "red_light_ratio": _num(lights)})
     header = ["Agent", "Episodes", "Success", *FAILURE_REASONS, "of which rear-end",
               "lane violations / km (successful)", "red-light ratio (successful)"]

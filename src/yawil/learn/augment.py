@@ -5,7 +5,8 @@ Three colour operations are off by default (probability 0) and can be switched o
 colour channel (a colour cast, CIL's `Multiply((0.8, 1.2), per_channel)`) and gamma. Why: a learned agent's
 failures were seen to gather in the sunset weathers, whose dark orange road the brightness and contrast
 factors do not imitate (docs/training.md, "Augmentation", says how far that is measured). Their parameters
-are drawn after every draw of the other operations, so a configuration that leaves them off augments exactly as before, bit for bit.
+are drawn after every draw of the other operations, so a configuration that leaves them off augments exactly
+as before, bit for bit.
 
 torchvision.transforms.v2 draws one set of parameters per call, so applied to a batch it would give every
 sample the same blur and brightness. Here the parameters are drawn per sample from a seeded

@@ -158,6 +158,10 @@ def test_dagger_config_is_checked() -> None:
     assert DaggerConfig(expert_args={"comfort_decel": 1.0}).expert_config().comfort_decel == 1.0
     with pytest.raises(ValueError, match="unknown expert setting"):
         DaggerConfig(expert_args={"softly": 1.0})
+    with pytest.raises(ValueError, match="guidance_reference"):
+        DaggerConfig(guidance_reference="north")
+    with pytest.raises(ValueError, match="guidance_reference"):
+        DaggerConfig(guidance_reference="ego", expert_data="data/x")  # given data keep their own reference
 
 
 def test_a_resume_may_change_the_executor_and_nothing_else(tmp_path: Path) -> None:
@@ -186,16 +190,19 @@ def test_the_dagger_learner_drives_as_benched(tiny_checkpoint: Any) -> None:
 
 
 def test_a_tiny_dagger_run_end_to_end_and_resumed(tmp_path: Path) -> None:
-    """Embedded town01, the small yaw-guided net: round 0 and one on-policy round, then a rerun skips all."""
+    """Embedded town01, the small yaw-guided net: round 0 and one on-policy round, then a rerun skips all.
+
+    Ego-referenced guidance, so that the round's frames are seen to follow the expert data's config."""
     cfg = DaggerConfig(model="yaw-guided", expert_frames=30, rounds=1, round_frames=20, episode_frames=40,
                        round0_steps=2, round_steps=2, batch_size=8, workers=1, threads=1, round_lr=2e-4,
-                       train_args={"val_fraction": 0.5, "augment": {"enabled": False}})
+                       train_args={"val_fraction": 0.5, "augment": {"enabled": False}}, guidance_reference="ego")
     out = tmp_path / "dg"
     # two expert episodes are needed for a split: 30 frames at <= 40 per episode
     final = DaggerRun(out, cfg, log=lambda m: None, progress=False).run()
     assert final == out / "train" / "round_01" / "last.pt" and final.is_file()
     m = read_manifest(out / "data" / "round_01")
     assert m.frames >= 20 and m.config["learner"]["checkpoint"].endswith("round_00/last.pt")
+    assert m.config["guidance"]["reference"] == "ego" == read_manifest(out / "data" / "expert").config["guidance"]["reference"]
     with open_episode(m.path_of(m.episodes[0])) as ep:
         labels = ep.labels()
     assert (labels["round"] == 1).all() and set(labels["driver"].tolist()) <= {LEARNER, TAKEOVER}

@@ -81,6 +81,12 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--on-collision", choices=COLLISION_POLICIES, default=d.on_collision,
                    help=f"trim: keep the episode without its last {d.trim_seconds:g} s; keep: all frames; discard: drop "
                         f"the episode (default {d.on_collision})")
+    from yawil.guidance import REFERENCES
+
+    p.add_argument("--guidance-reference", choices=REFERENCES, default="route",
+                   help="what the yaw guidance is measured against: route (the paper: the first guidance point's "
+                        "heading) or ego (the car's own heading, so the vector also tells the heading error); "
+                        "models trained on the data drive with the same (default route)")
     p.add_argument("--expert-arg", action="append", default=[], metavar="KEY=VALUE",
                    help="a setting of the expert's ExpertConfig (docs/expert.md), e.g. comfort_decel=1.5; repeat for more "
                         "(stored in the dataset's config, so a resume must give the same)")
@@ -113,6 +119,7 @@ def run(args: argparse.Namespace) -> int:
     from yawil.data.collect import collect
     from yawil.data.collect_config import DEFAULT_FRAMES
     from yawil.expert import ExpertConfig
+    from yawil.guidance import GuidanceConfig
 
     if args.frames is None and args.episodes is None:
         args.frames = DEFAULT_FRAMES
@@ -138,7 +145,8 @@ def run(args: argparse.Namespace) -> int:
         factory = server_worlds(servers, args.timeout)  # type: ignore[assignment]
     summary = collect(args.out, verify=args.verify, town=args.town, weathers=args.weathers, frames=args.frames, episodes=args.episodes,
                       workers=args.workers, seed=args.seed, config=cfg, progress=not args.quiet,
-                      world_factory=factory, expert_config=expert, executor=executor)  # fmt: skip
+                      world_factory=factory, expert_config=expert, executor=executor,
+                      guidance=GuidanceConfig(reference=args.guidance_reference))  # fmt: skip
     outcomes = ", ".join(f"{k} {v}" for k, v in sorted(summary.outcomes.items())) or "none"
     print(f"{summary.out}: wrote {summary.episodes_written} episodes, {summary.frames_written} frames in "
           f"{summary.seconds:.0f} s ({summary.frames_per_second:.1f} frames/s); skipped {summary.episodes_skipped} "

@@ -29,6 +29,7 @@ from pathlib import Path
 from typing import Any
 
 from yawil.executor import ExecutorConfig, add_executor_arguments, executor_from_args
+from yawil.guidance import REFERENCES, GuidanceConfig
 from yawil.policy.speed import (
     SPEED_CONTROLS,
     add_speed_control_arguments,
@@ -79,6 +80,8 @@ class DaggerConfig:
     speed_control: bool | str = False
     stop_release: float = 0.0  # s: the learner's "stop" release, as `yawil bench --stop-release`
     expert_args: dict[str, float] = field(default_factory=dict)  # ExpertConfig settings of the expert (labels, takeovers)
+    # the yaw guidance's reference when round 0's data is collected here; rounds always take the expert data's
+    guidance_reference: str = "route"
 
     def __post_init__(self) -> None:
         def need(ok: bool, name: str, want: str) -> None:
@@ -105,6 +108,9 @@ class DaggerConfig:
         except ValueError:
             need(False, "stop_release", "seconds >= 0, > 0 only with speed_control 'stop'")
         need(isinstance(self.expert_args, dict), "expert_args", "a mapping of ExpertConfig settings")
+        need(self.guidance_reference in REFERENCES, "guidance_reference", f"one of {', '.join(REFERENCES)}")
+        need(self.expert_data is None or self.guidance_reference == "route", "guidance_reference",
+             "route with --expert-data (the data's own reference is used)")
         self.expert_config()  # an unknown or invalid expert setting fails here
         self.executor_config()  # and an unknown executor
         aux = (self.train_args.get("model_args") or {}).get("aux") is True
@@ -168,6 +174,12 @@ class DaggerRun:
             return Path(self.cfg.round0)
         return self.round_run(r) / "last.pt"
 
+    def guidance(self) -> GuidanceConfig:
+        """The expert data's guidance config: the rounds' frames must be sampled the same way to be trained together."""
+        from yawil.data.dataset import guidance_config_of
+
+        return GuidanceConfig.from_dict(guidance_config_of([self.expert_data()]))
+
     def stage(self, name: str) -> Path:
         return self.out / "stages" / f"{name}.json"
 
@@ -228,7 +240,7 @@ class DaggerRun:
         s = collect(self.expert_data(), town=self.cfg.town, weathers="train", frames=self.cfg.expert_frames,
                     workers=self.cfg.workers, seed=self.cfg.seed, progress=self.progress, desc="round 0",
                     max_episode_frames=self.cfg.episode_frames, expert_config=self.cfg.expert_config(),
-                    executor=self.cfg.executor_config())
+                    executor=self.cfg.executor_config(), guidance=GuidanceConfig(reference=self.cfg.guidance_reference))
         return {"frames": s.dataset_frames, "episodes": s.episodes_written + s.episodes_skipped}
 
     def collect_round(self, r: int) -> dict[str, Any]:
@@ -247,7 +259,7 @@ class DaggerRun:
         s = collect(self.round_data(r), town=cfg.town, weathers="train", frames=cfg.round_frames, workers=cfg.workers,
                     seed=cfg.seed + ROUND_SEED_STRIDE * r, progress=self.progress, learner=learner, desc=f"round {r}",
                     noise_fraction=0.0, trim_seconds=1.0, max_episode_frames=cfg.episode_frames,
-                    expert_config=cfg.expert_config(), executor=cfg.executor_config())
+                    expert_config=cfg.expert_config(), executor=cfg.executor_config(), guidance=self.guidance())
         self.log(f"round {r}: {s.frames_written} frames stored this run; frames driven by "
                  f"{json.dumps(s.drivers)}; {s.takeovers} takeovers; outcomes {json.dumps(s.outcomes)}")
         return {"frames": s.dataset_frames, "drivers": s.drivers, "takeovers": s.takeovers, "outcomes": s.outcomes,
@@ -318,6 +330,9 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     add_speed_control_arguments(p, "the learner, as yawil bench drives it: ")
     p.add_argument("--expert-arg", action="append", default=[], metavar="KEY=VALUE",
                    help="a setting of the expert's ExpertConfig for its data, labels and takeovers (as yawil collect)")
+    p.add_argument("--guidance-reference", choices=REFERENCES, default=d.guidance_reference,
+                   help="yaw guidance reference of the expert data collected here (as yawil collect); with "
+                        "--expert-data the data's own (default route)")
     p.add_argument("--no-progress", action="store_true")
     return p
 
@@ -359,7 +374,7 @@ def run(args: argparse.Namespace) -> int:
             threads=args.threads, train_args=_train_args(args.train_arg),
             round0=args.round0, expert_data=args.expert_data, speed_control=args.speed_control,
             stop_release=args.stop_release,
-            expert_args=_expert_args(args.expert_arg),
+            expert_args=_expert_args(args.expert_arg), guidance_reference=args.guidance_reference,
         )
         from yawil.learn.config import TrainConfig
 

@@ -81,9 +81,9 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--on-collision", choices=COLLISION_POLICIES, default=d.on_collision,
                    help=f"trim: keep the episode without its last {d.trim_seconds:g} s; keep: all frames; discard: drop "
                         f"the episode (default {d.on_collision})")
-    from yawil.guidance import REFERENCES
+    from yawil.guidance import REFERENCES, GuidanceConfig
 
-    p.add_argument("--guidance-reference", choices=REFERENCES, default="route",
+    p.add_argument("--guidance-reference", choices=REFERENCES, default=GuidanceConfig.reference,
                    help="what the yaw guidance is measured against: route (the paper: the first guidance point's "
                         "heading) or ego (the car's own heading, so the vector also tells the heading error); "
                         "models trained on the data drive with the same (default route)")

@@ -81,7 +81,7 @@ class DaggerConfig:
     stop_release: float = 0.0  # s: the learner's "stop" release, as `yawil bench --stop-release`
     expert_args: dict[str, float] = field(default_factory=dict)  # ExpertConfig settings of the expert (labels, takeovers)
     # the yaw guidance's reference when round 0's data is collected here; rounds always take the expert data's
-    guidance_reference: str = "route"
+    guidance_reference: str = GuidanceConfig.reference
 
     def __post_init__(self) -> None:
         def need(ok: bool, name: str, want: str) -> None:
@@ -109,8 +109,8 @@ class DaggerConfig:
             need(False, "stop_release", "seconds >= 0, > 0 only with speed_control 'stop'")
         need(isinstance(self.expert_args, dict), "expert_args", "a mapping of ExpertConfig settings")
         need(self.guidance_reference in REFERENCES, "guidance_reference", f"one of {', '.join(REFERENCES)}")
-        need(self.expert_data is None or self.guidance_reference == "route", "guidance_reference",
-             "route with --expert-data (the data's own reference is used)")
+        need(self.expert_data is None or self.guidance_reference == GuidanceConfig.reference, "guidance_reference",
+             f"{GuidanceConfig.reference} (the default) with --expert-data (the data's own reference is used)")
         self.expert_config()  # an unknown or invalid expert setting fails here
         self.executor_config()  # and an unknown executor
         aux = (self.train_args.get("model_args") or {}).get("aux") is True

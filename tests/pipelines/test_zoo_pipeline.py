@@ -1,5 +1,6 @@
 """`yawil reproduce --profile zoo` at a tiny scale: collect, train, benchmark, pack; the packed model passes its
-probe check and its card holds the figures the stages measured; a rerun resumes without work."""
+probe check and its card holds the figures the stages measured; a rerun resumes without work. And the plan: one
+expert collection per guidance reference the chosen recipes need."""
 
 from __future__ import annotations
 
@@ -14,11 +15,13 @@ from yawil.pipelines import zoo as zp
 def test_zoo_pipeline_makes_a_checked_model_with_its_card(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     from yawil.bench.suites import episodes
     from yawil.cli import main
-    from yawil.zoo import read_card
+    from yawil.policy.checkpoint import load_checkpoint
+    from yawil.zoo import read_card, zoo_dir
     from yawil.zoo.pack import check_zoo_model
 
     tiny = zp.ZooRecipe("tiny", "a tiny net", "yaw-guided", 3, drive={"speed_control": "target"},
-                        train_args={"ema": 0.9, "model_args": {"aux": True}, "aux_weight": 0.5, "threads": 1})
+                        train_args={"ema": 0.9, "model_args": {"aux": True}, "aux_weight": 0.5, "threads": 1},
+                        guidance_reference="ego")
     monkeypatch.setattr(zp, "RECIPES", (tiny,))
     monkeypatch.setattr(zp, "EXPERT_FRAMES", 150)
     monkeypatch.setattr(zp, "EVAL_WORKERS", 1)
@@ -31,5 +34,24 @@ def test_zoo_pipeline_makes_a_checked_model_with_its_card(tmp_path: Path, monkey
     assert card["drive"] == {"speed_control": "target"} and card["commands"][1].startswith("yawil train --model yaw-guided")
     assert card["data"]["frames"] == 150 and "cores" in card["machine"] and card["validation"]
     assert check_zoo_model("tiny", out / "zoo") <= 1e-3
+    assert card["data"]["guidance_reference"] == "ego" and "--guidance-reference ego" in card["commands"][0]
+    packed = load_checkpoint(zoo_dir("tiny", out / "zoo") / "model.pt")
+    assert packed["guidance_config"]["reference"] == "ego"
     assert main(["reproduce", "--profile", "zoo", "--out", str(out)]) == 0  # every stage done: nothing runs again
     assert main(["reproduce", "--profile", "zoo", "--out", str(out), "--zoo-models", "nope"]) == 2
+
+
+def test_plan_collects_once_per_guidance_reference_and_commands_name_it(tmp_path: Path) -> None:
+    route = [r.name for r in zp.RECIPES if r.guidance_reference == "route"]
+    ego = [r.name for r in zp.RECIPES if r.guidance_reference == "ego"]
+    assert route and ego  # the shipped recipes use both
+    plan = [name for name, _ in zp.stages(tmp_path, route + ego)]
+    assert plan[:2] == ["collect", "collect_ego"] and plan.count("collect") == 1 and plan.count("collect_ego") == 1
+    assert [name for name, _ in zp.stages(tmp_path, ego)][0] == "collect_ego"
+    assert "collect" not in [name for name, _ in zp.stages(tmp_path, ego)]
+    assert zp.data_dir(tmp_path, "route") == tmp_path / "data" / "town01"  # the folder earlier runs resume in
+    assert zp.data_dir(tmp_path, "ego") == tmp_path / "data" / "town01_ego"
+    r = zp.recipe(ego[0])
+    collect, train, bench = r.commands("data/e", "runs/e")
+    assert collect.endswith("--guidance-reference ego") and "--expert-data data/e" in train
+    assert zp.recipe(route[0]).commands("data/r", "runs/r")[0].endswith("--seed 0")  # the paper's: no flag

@@ -1,7 +1,8 @@
 """`yawil reproduce --profile zoo`: remake the zoo's models from nothing, with the recipes their cards name.
 
 Stages (each resumable at any kill: a marker per finished stage, and every stage resumes mid-way):
-  1. collect town01's expert data (training weathers, 20,000 frames, seed 0);
+  1. collect town01's expert data (training weathers, 20,000 frames, seed 0), once per yaw-guidance reference
+     the recipes ask for (`route`, the paper's: OUT/data/town01; `ego`: OUT/data/town01_ego, the same episodes);
   2. per zoo recipe: train it (`yawil dagger` or `yawil train`), benchmark it on the fixed 100-episode set
      (`--preset eval100`) and on the demo's episodes, then pack it with its card into OUT/zoo/NAME
      (`--install` packs into the repository's zoo instead, replacing the shipped model).
@@ -22,6 +23,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
+from yawil.guidance import GuidanceConfig
+
 EXPERT_FRAMES = 20_000
 EVAL_WORKERS = 2
 
@@ -37,6 +40,7 @@ class ZooRecipe:
     train_args: dict[str, Any] = field(default_factory=dict)  # TrainConfig settings
     dagger: dict[str, Any] | None = None  # DaggerConfig settings (None: plain `yawil train`)
     drive: dict[str, Any] = field(default_factory=dict)  # speed_control, stop_release
+    guidance_reference: str = GuidanceConfig.reference  # of the expert data (`yawil collect --guidance-reference`)
 
     def commands(self, data: str, out: str) -> list[str]:
         """The single commands this recipe equals (for the card)."""
@@ -44,6 +48,8 @@ class ZooRecipe:
 
         drive = drive_flags(self.drive)
         collect = f"yawil collect --town town01 --weathers train --frames {EXPERT_FRAMES} --out {data} --workers 2 --seed 0"
+        if self.guidance_reference != GuidanceConfig.reference:
+            collect += f" --guidance-reference {self.guidance_reference}"
         if self.dagger is not None:
             d = self.dagger
             targs = " ".join(f"--train-arg '{k}={json.dumps(v)}'" for k, v in self.train_args.items())
@@ -73,6 +79,13 @@ RECIPES: tuple[ZooRecipe, ...] = (
               "predicted target speed", "yaw-guided", 750,
               train_args={"ema": 0.995, "model_args": {"aux": True, "speed_input": False}, "aux_weight": 0.5},
               drive={"speed_control": "target"}),
+    ZooRecipe("yaw-guided-dagger-ego",
+              "the small yaw-guided baseline with the yilratt-dagger-stop recipe (speed-blind aux head with the "
+              "lead-stop class, weight average, two DAgger rounds) on expert data whose yaw guidance is measured "
+              "against the car's own heading (`ego`, not the paper's `route`); driven as yilratt-dagger-stop",
+              "yaw-guided", 1500, train_args={"ema": 0.995, "model_args": LEAD_STOP, "aux_weight": 0.5},
+              dagger={"round0_steps": 750, "rounds": 2, "round_frames": 6000, "round_steps": 375, "speed_control": "stop"},
+              drive={"speed_control": "stop", "stop_release": 10.0}, guidance_reference="ego"),
 )
 
 
@@ -81,6 +94,15 @@ def recipe(name: str) -> ZooRecipe:
         if r.name == name:
             return r
     raise ValueError(f"zoo recipe {name!r}: expected one of {', '.join(r.name for r in RECIPES)}")
+
+
+def data_dir(out: Path, reference: str) -> Path:
+    """The expert data of one guidance reference: the paper's `route` keeps the original folder name."""
+    return out / "data" / ("town01" if reference == GuidanceConfig.reference else f"town01_{reference}")
+
+
+def collect_stage_name(reference: str) -> str:
+    return "collect" if reference == GuidanceConfig.reference else f"collect_{reference}"
 
 
 def machine() -> str:
@@ -116,18 +138,20 @@ def episode_set(which: str) -> list[Any]:
 
 def stages(out: Path, names: list[str], device: str = "auto", install: bool = False,
            progress: bool = True) -> list[tuple[str, Callable[[], dict[str, Any]]]]:
-    data = out / "data" / "town01"
+    def collect_stage(reference: str) -> Callable[[], dict[str, Any]]:
+        def fn() -> dict[str, Any]:
+            from yawil.data.collect import collect
 
-    def collect_stage() -> dict[str, Any]:
-        from yawil.data.collect import collect
+            s = collect(data_dir(out, reference), town="town01", weathers="train", frames=EXPERT_FRAMES, workers=2,
+                        seed=0, guidance=GuidanceConfig(reference=reference), progress=progress)
+            return {"frames": s.dataset_frames, "guidance_reference": reference}
 
-        s = collect(data, town="town01", weathers="train", frames=EXPERT_FRAMES, workers=2, seed=0, progress=progress)
-        return {"frames": s.dataset_frames}
+        return fn
 
     def train_stage(r: ZooRecipe) -> Callable[[], dict[str, Any]]:
         def fn() -> dict[str, Any]:
             t = time.perf_counter()
-            run = out / "runs" / r.name
+            run, data = out / "runs" / r.name, data_dir(out, r.guidance_reference)
             if r.dagger is not None:
                 from yawil.pipelines.dagger import DaggerConfig, DaggerRun
 
@@ -177,12 +201,14 @@ def stages(out: Path, names: list[str], device: str = "auto", install: bool = Fa
             from yawil.zoo import ZOO_DIR
             from yawil.zoo.pack import pack
 
+            data = data_dir(out, r.guidance_reference)
             marks = {k: read_marker(out / "stages" / f"{k}_{r.name}.json") or {} for k in ("train", "eval100", "demo")}
             ckpt = checkpoint_of(r)
             metrics = load_checkpoint(ckpt)["metrics"]
             card = {"summary": r.summary, "commands": r.commands(str(data), str(out / "runs" / r.name)),
                     "made_by": f"yawil reproduce --profile zoo --out {out}", "commit": git_commit(),
-                    "data": {"path": str(data), "town": "town01", "weathers": "train", "frames": EXPERT_FRAMES, "seed": 0},
+                    "data": {"path": str(data), "town": "town01", "weathers": "train", "frames": EXPERT_FRAMES, "seed": 0,
+                             "guidance_reference": r.guidance_reference},
                     "wall_s": {"train": marks["train"].get("wall_s"), "eval100": marks["eval100"].get("wall_s")},
                     "machine": machine(), "validation": metrics[-1] if metrics else {},
                     "eval100": marks["eval100"], "demo": marks["demo"], "drive": r.drive}
@@ -191,9 +217,10 @@ def stages(out: Path, names: list[str], device: str = "auto", install: bool = Fa
 
         return fn
 
-    plan: list[tuple[str, Callable[[], dict[str, Any]]]] = [("collect", collect_stage)]
-    for n in names:
-        r = recipe(n)
+    chosen = [recipe(n) for n in names]
+    plan: list[tuple[str, Callable[[], dict[str, Any]]]] = [
+        (collect_stage_name(ref), collect_stage(ref)) for ref in dict.fromkeys(r.guidance_reference for r in chosen)]
+    for r in chosen:
         plan.append((f"train_{r.name}", train_stage(r)))
         plan.append((f"eval100_{r.name}", bench_stage(r, "eval100")))
         plan.append((f"demo_{r.name}", bench_stage(r, "demo")))

@@ -67,13 +67,15 @@ class ZooRecipe:
 
 
 LEAD_STOP = {"aux": True, "lead_stop": True, "speed_input": False}
+# the yilratt-dagger-stop recipe, shared by the recipes that train and drive that way
+DAGGER_STOP_TRAIN = {"ema": 0.995, "model_args": LEAD_STOP, "aux_weight": 0.5}
+DAGGER_STOP = {"round0_steps": 750, "rounds": 2, "round_frames": 6000, "round_steps": 375, "speed_control": "stop"}
+STOP_DRIVE = {"speed_control": "stop", "stop_release": 10.0}
 RECIPES: tuple[ZooRecipe, ...] = (
     ZooRecipe("yilratt-dagger-stop",
               "YILRatt (the paper's network) + speed-blind aux head with the lead-stop class, weight average, two DAgger "
               "rounds; driven by its target speed, stopping while the class fires, released after 10 s standing",
-              "yilratt", 1500, train_args={"ema": 0.995, "model_args": LEAD_STOP, "aux_weight": 0.5},
-              dagger={"round0_steps": 750, "rounds": 2, "round_frames": 6000, "round_steps": 375, "speed_control": "stop"},
-              drive={"speed_control": "stop", "stop_release": 10.0}),
+              "yilratt", 1500, train_args=DAGGER_STOP_TRAIN, dagger=DAGGER_STOP, drive=STOP_DRIVE),
     ZooRecipe("yaw-guided-ema",
               "the small yaw-guided baseline (CIL perception) + speed-blind aux head, weight average; driven by its "
               "predicted target speed", "yaw-guided", 750,
@@ -83,9 +85,8 @@ RECIPES: tuple[ZooRecipe, ...] = (
               "the small yaw-guided baseline with the yilratt-dagger-stop recipe (speed-blind aux head with the "
               "lead-stop class, weight average, two DAgger rounds) on expert data whose yaw guidance is measured "
               "against the car's own heading (`ego`, not the paper's `route`); driven as yilratt-dagger-stop",
-              "yaw-guided", 1500, train_args={"ema": 0.995, "model_args": LEAD_STOP, "aux_weight": 0.5},
-              dagger={"round0_steps": 750, "rounds": 2, "round_frames": 6000, "round_steps": 375, "speed_control": "stop"},
-              drive={"speed_control": "stop", "stop_release": 10.0}, guidance_reference="ego"),
+              "yaw-guided", 1500, train_args=DAGGER_STOP_TRAIN, dagger=DAGGER_STOP, drive=STOP_DRIVE,
+              guidance_reference="ego"),
 )
 
 
@@ -96,13 +97,18 @@ def recipe(name: str) -> ZooRecipe:
     raise ValueError(f"zoo recipe {name!r}: expected one of {', '.join(r.name for r in RECIPES)}")
 
 
+def _suffix(reference: str) -> str:
+    """The paper's `route` keeps the names runs made before references existed (so they resume); others add theirs."""
+    return "" if reference == GuidanceConfig.reference else f"_{reference}"
+
+
 def data_dir(out: Path, reference: str) -> Path:
-    """The expert data of one guidance reference: the paper's `route` keeps the original folder name."""
-    return out / "data" / ("town01" if reference == GuidanceConfig.reference else f"town01_{reference}")
+    """The expert data of one guidance reference."""
+    return out / "data" / f"town01{_suffix(reference)}"
 
 
 def collect_stage_name(reference: str) -> str:
-    return "collect" if reference == GuidanceConfig.reference else f"collect_{reference}"
+    return f"collect{_suffix(reference)}"
 
 
 def machine() -> str:

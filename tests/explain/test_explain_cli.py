@@ -30,6 +30,19 @@ def test_explain_frames_writes_figures(tmp_path: Path, name: str, tiny_checkpoin
     assert (tmp_path / "x" / "grid.png").stat().st_size > 0
 
 
+def test_explain_frames_refuses_data_of_another_guidance_reference(
+    tmp_path: Path, tiny_checkpoint: Any, tiny_dataset: Any, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """An `ego` model explained on the paper's `route` data would read guidance it never saw: one clear line."""
+    data = tiny_dataset(episodes=1, frames=3, k=15)
+    ego = tiny_checkpoint("yilratt", guidance=GuidanceConfig(count=15, reference="ego").to_dict(), guidance_dim=15)
+    assert main(["explain", "--checkpoint", str(ego.path), "--frames", str(data), "--count", "1",
+                 "--out", str(tmp_path / "x")]) == 2
+    err = capsys.readouterr().err
+    assert ".h5" in err and "'reference': 'route'" in err and "--guidance-reference ego" in err
+    assert not (tmp_path / "x" / "grid.png").exists()
+
+
 def test_record_maps_are_probability_maps(tiny_checkpoint: Any, tiny_dataset: Any) -> None:
     from yawil.agent import Agent
     from yawil.data.reader import open_episode

@@ -93,6 +93,20 @@ def _episode_files(root: Path) -> list[Path]:
     return files
 
 
+def check_guidance(agent: Agent, ep_config: dict, path: Path) -> None:  # type: ignore[type-arg]
+    """A guided network explained on frames whose stored guidance it was not trained on would show maps of
+    inputs it never saw (an `ego` model on the paper's `route` data): refuse, naming both."""
+    from yawil.guidance import GuidanceConfig
+
+    stored = ep_config.get("guidance")
+    if agent.kind is None or not isinstance(stored, dict):
+        return
+    if GuidanceConfig.from_dict(stored) != agent.guidance_config:
+        raise ValueError(f"{path}: its guidance {stored} differs from the checkpoint's "
+                         f"{agent.guidance_config.to_dict()}; explain on data collected with the checkpoint's "
+                         f"(`yawil collect --guidance-reference {agent.guidance_config.reference}`)")
+
+
 def explain_frames(agent: Agent, root: Path, out: Path, count: int, seed: int, alpha: float) -> list[Path]:
     """Figures for `count` frames spread over the dataset (seeded choice); returns their paths, grid last."""
     from yawil.data.reader import open_episode
@@ -104,6 +118,7 @@ def explain_frames(agent: Agent, root: Path, out: Path, count: int, seed: int, a
     paths = []
     for n, fi in enumerate(picks):
         with open_episode(files[fi]) as ep:
+            check_guidance(agent, ep.attrs["config"], files[fi])
             row = int(rng.integers(len(ep)))
             rec = ep[row]
             title = f"ep {ep.episode} frame {rec.frame} ({ep.attrs['weather']})"

@@ -87,6 +87,11 @@ RECIPES: tuple[ZooRecipe, ...] = (
               "against the car's own heading (`ego`, not the paper's `route`); driven as yilratt-dagger-stop",
               "yaw-guided", 1500, train_args=DAGGER_STOP_TRAIN, dagger=DAGGER_STOP, drive=STOP_DRIVE,
               guidance_reference="ego"),
+    ZooRecipe("yilratt-dagger-ego",
+              "YILRatt (the paper's network) with the yilratt-dagger-stop recipe on expert data whose yaw guidance is "
+              "measured against the car's own heading (`ego`, not the paper's `route`); driven as yilratt-dagger-stop",
+              "yilratt", 1500, train_args=DAGGER_STOP_TRAIN, dagger=DAGGER_STOP, drive=STOP_DRIVE,
+              guidance_reference="ego"),
 )
 
 

@@ -29,11 +29,12 @@ def test_demo_recipe_teaches_the_baseline_the_easy_routes(tmp_path: Path) -> Non
     from yawil.data.collect import collect
     from yawil.learn.config import TrainConfig
     from yawil.learn.loop import train
-    from yawil.pipelines.demo import DemoBudget
+    from yawil.pipelines.demo import DemoBudget, demo_guidance
     from yawil.pipelines.zoo import episode_set
 
     b = DemoBudget()
-    collect(tmp_path / "data", town="town01", weathers="train", frames=b.frames, workers=2, seed=0, progress=False)
+    collect(tmp_path / "data", town="town01", weathers="train", frames=b.frames, workers=2, seed=0, progress=False,
+            guidance=demo_guidance(read_card(b.zoo_model)))  # fmt: skip
     cfg = TrainConfig(model=b.baseline, data=[str(tmp_path / "data")], out=str(tmp_path / "run"), epochs=b.epochs,
                       batch_size=b.batch_size, lr=b.lr, lr_step_epochs=b.lr_step_epochs, max_steps=b.baseline_steps,
                       seed=0, workers=1, ema=b.baseline_ema, progress=False)

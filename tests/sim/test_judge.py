@@ -99,8 +99,8 @@ def test_a_new_criterion_is_one_entry_in_the_judge() -> None:
     assert honk.started == 1
     assert judge.update(0.1, 1.0, 0.0, 0.0, (0.0, 0.0), NO_CONTACTS, _lane, ()) == []
     assert [e.detail for e in judge.update(0.2, 9.0, 0.0, 0.0, (1.0, 0.0), NO_CONTACTS, _lane, ())] == ["honk"]
-    with pytest.raises(NotImplementedError):
-        Criterion().judge(StepState(0.0, 0.0, 0.0, 0.0, (0.0, 0.0), 0, "lane", (), NO_CONTACTS))
+    with pytest.raises(TypeError, match="abstract method.*judge"):  # a rule without `judge` cannot be made
+        Criterion()  # type: ignore[abstract]
 
 
 def test_the_embedded_world_reports_what_its_judge_says() -> None:

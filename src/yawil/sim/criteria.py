@@ -9,6 +9,7 @@ method on plain numbers (`update(...)`), for callers outside an episode (the ben
 
 from __future__ import annotations
 
+import abc
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -42,19 +43,19 @@ class StepState:
     contacts: Contacts
 
 
-class Criterion:
+class Criterion(abc.ABC):
     """One rule of an episode. Subclasses implement `judge`; `start` resets them (override if it needs `first`)."""
 
-    def reset(self) -> None:
+    def reset(self) -> None:  # noqa: B027 (a hook, not abstract: a rule with no state keeps this one)
         """Forget the previous episode."""
 
     def start(self, first: StepState) -> None:
         """A new episode begins at `first` (nothing is judged on it)."""
         self.reset()
 
+    @abc.abstractmethod
     def judge(self, state: StepState) -> list[Event]:
         """The events of the step that ends in `state`."""
-        raise NotImplementedError
 
 
 def nocrash_timeout(route_length: float) -> float:

@@ -169,6 +169,7 @@ def zoo_spec(name: str) -> Any:
 
 
 def run_demo(out: Path, budget: DemoBudget, seed: int = 0) -> Path:
+    from yawil.guidance import GuidanceConfig
     from yawil.zoo import read_card
 
     out.mkdir(parents=True, exist_ok=True)
@@ -183,10 +184,11 @@ def run_demo(out: Path, budget: DemoBudget, seed: int = 0) -> Path:
 
     # 1. collect
     info = _done(out, "collect")
-    if info is not None and info.get("guidance_reference", "route") != guidance.reference:
-        raise ValueError(f"{data}: collected by an earlier demo with the {info.get('guidance_reference', 'route')!r} "
-                         f"yaw reference, but zoo:{budget.zoo_model} needs {guidance.reference!r}; "
-                         f"remove {out} or give another --out")
+    # a marker from before the reference was recorded names none: that demo collected the default (route)
+    had = None if info is None else info.get("guidance_reference", GuidanceConfig.reference)
+    if had is not None and had != guidance.reference:
+        raise ValueError(f"{data}: collected by an earlier demo with the {had!r} yaw reference, but "
+                         f"zoo:{budget.zoo_model} needs {guidance.reference!r}; remove {out} or give another --out")
     if info is None:
         from yawil.data.collect import collect
 

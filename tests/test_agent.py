@@ -11,7 +11,7 @@ import numpy as np
 import pytest
 import torch
 
-from yawil.agent import Agent, PostProcess
+from yawil.agent import Agent, PostProcess, SpeedControl
 from yawil.guidance import GuidanceConfig, compute_guidance
 from yawil.learn.sampling import prepare_batch
 from yawil.policy.runtime import resolve_runtime
@@ -69,7 +69,7 @@ def test_guided_agent_uses_training_preprocessing(tiny_checkpoint: Any) -> None:
         ref = agent.model(b.image, b.speed, guidance=b.guidance)
     np.testing.assert_allclose(agent.last.actions, ref.actions[0].numpy(), atol=1e-6)
     assert agent.last.speed == pytest.approx(float(ref.speed[0, 0]) * 1.5 + 2.5, abs=1e-5)
-    assert agent._hint is not None  # the projection hint is kept for the next frame
+    assert agent.states[0].hint is not None  # the projection hint is kept for the next frame
 
 
 def test_branched_agent_follows_the_command(tiny_checkpoint: Any) -> None:
@@ -150,7 +150,7 @@ def test_speed_control_drives_the_predicted_target_speed(tiny_checkpoint: Any) -
     assert plain.last is not None and ctl.last is not None and ctl.last.target_speed is not None
     assert c0.steer == pytest.approx(c1.steer)  # steering stays the net's
     target = ctl.last.target_speed
-    t_want, b_want = type(ctl.speed_control)()(target, 3.0)  # type: ignore[misc]
+    t_want, b_want = SpeedControl()(target, 3.0)  # type: ignore[misc]
     assert c1.throttle == pytest.approx(t_want) and c1.brake == pytest.approx(b_want if b_want >= 0.1 else 0.0)
     with pytest.raises(ValueError, match="aux head"):
         Agent.from_checkpoint(tiny_checkpoint("yaw-guided", guidance=GC, spread=True, guidance_dim=K)[0], speed_control=True)
@@ -163,9 +163,9 @@ def test_lead_speed_control_caps_the_target_by_the_predicted_lead(tiny_checkpoin
     from yawil.expert import hazard_speed
 
     path, _ = tiny_checkpoint("yilratt", guidance=GC, spread=True, guidance_dim=K, dropout=0.0, aux=True)
-    target = Agent.from_checkpoint(path, precision="fp32", speed_control="target")
-    lead = Agent.from_checkpoint(path, precision="fp32", speed_control="lead")
-    assert Agent.from_checkpoint(path, precision="fp32", speed_control=True).speed_mode == "target"
+    target = Agent.from_checkpoint(path, precision="fp32", speed_control="target", engine="torch")
+    lead = Agent.from_checkpoint(path, precision="fp32", speed_control="lead", engine="torch")
+    assert Agent.from_checkpoint(path, precision="fp32", speed_control=True).drive.speed_control == "target"
     obs = observation(speed=3.0)
     for d_scaled, capped in ((0.04, True), (0.99, False)):  # a lead predicted 2 m ahead; none
         for agent in (target, lead):
@@ -200,8 +200,8 @@ def test_stop_speed_control_stops_while_the_lead_stop_output_fires(tiny_checkpoi
     head's own; refused for a model without the lead-stop output."""
     path, _ = tiny_checkpoint("yaw-guided", guidance=GC, spread=True, guidance_dim=K, dropout=0.0, aux=True,
                               lead_stop=True)
-    target = Agent.from_checkpoint(path, precision="fp32", speed_control="target")
-    stop = Agent.from_checkpoint(path, precision="fp32", speed_control="stop")
+    target = Agent.from_checkpoint(path, precision="fp32", speed_control="target", engine="torch")
+    stop = Agent.from_checkpoint(path, precision="fp32", speed_control="stop", engine="torch")
     obs = observation(speed=3.0)
     for logit, fires in ((4.0, True), (-4.0, False)):
         for agent in (target, stop):
@@ -248,7 +248,7 @@ def test_stop_speed_control_releases_a_car_the_class_alone_holds(tiny_checkpoint
 
     path, _ = tiny_checkpoint("yaw-guided", guidance=GC, spread=True, guidance_dim=K, dropout=0.0, aux=True,
                               lead_stop=True)
-    agent = Agent.from_checkpoint(path, precision="fp32", speed_control="stop", stop_release=release)
+    agent = Agent.from_checkpoint(path, precision="fp32", speed_control="stop", stop_release=release, engine="torch")
     last = [m for m in agent.model.aux_head.modules() if isinstance(m, torch.nn.Linear)][-1]
     with torch.no_grad():
         last.weight[[0, 4]] = 0.0

@@ -1,31 +1,47 @@
 """A trained model as a driver: Observation in, Control out, with exactly the training preprocessing.
 
-    agent = Agent.from_checkpoint("runs/yilratt/best.pt")
+    agent = Agent.from_checkpoint("zoo:yilratt-dagger-ego")   # a zoo model drives as its card says
     agent.reset()
     control = agent.act(obs)       # yawil.sim.types.Control
     agent.last                     # raw outputs of that step (actions, speed, attention maps) for heat maps
 
-Preprocessing is the model-input contract of `yawil.policy.inputs`, the one the trainer uses: image uint8 HWC
--> float [0, 1] CHW; speed and guidance normalised with the checkpoint's training statistics; guidance computed
-from the observation's route with the checkpoint's GuidanceConfig (the projection hint is kept across frames);
-the command as a branch index (command_index). Post-processing is `PostProcess`, documented in docs/training.md.
-The benchmark needs only `reset()` and `act(obs)`.
+    agent = Agent.from_checkpoint("runs/yilratt/best.pt", slots=8, attention=False)  # a batch of episodes
+    agent.reset(seed=s, slot=i)                      # each episode its own slot and state
+    controls = agent.act_batch([obs_a, obs_b], slots=[0, 3])   # one forward for all of them
+
+The agent is three parts composed: the model-input contract (`yawil.policy.inputs`, the trainer's: image uint8
+HWC -> float [0, 1] CHW; speed and guidance normalised with the checkpoint's statistics; guidance computed from
+the observation's route with the checkpoint's GuidanceConfig; the command as a branch index), the engine that
+runs the network on a batch (`yawil.policy.engine`), and the drive-time behaviours with their per-episode state
+(`yawil.policy.drive`: noise, target-speed control, stop release, post-processing). An episode's controls depend
+only on its own observations and seed, never on which episodes share its batch.
+The benchmark needs only `reset()` and `act(obs)`, or `reset(seed, slot)` and `act_batch`.
 """
 
 from __future__ import annotations
 
 import os
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from typing import Any
 
 import numpy as np
 import torch
 
-from yawil.data.schema import LEAD_RANGE
-from yawil.expert import ExpertConfig, hazard_speed
-from yawil.guidance import COMMAND_NOISE_MODES, YAW_NOISE_MODES, CommandNoise, GuidanceConfig
-from yawil.models.base import AUX_NAMES, LEAD_STOP_FIRES
+from yawil.guidance import GuidanceConfig
 from yawil.policy.checkpoint import Norm, load_checkpoint, model_from_checkpoint
+from yawil.policy.drive import (  # noqa: F401  (re-exported: the names users and tests know from here)
+    LEAD_DECEL,
+    LEAD_SEEN,
+    STANDING,
+    STOP_CREEP,
+    DriveSettings,
+    EpisodeState,
+    PostProcess,
+    SpeedControl,
+    StopRelease,
+)
+from yawil.policy.engine import Engine, make_engine, resolve_engine
 from yawil.policy.inputs import (
     InputSpec,
     ModelInputs,
@@ -35,120 +51,7 @@ from yawil.policy.inputs import (
     takes_command,
 )
 from yawil.policy.runtime import Runtime, resolve_runtime
-from yawil.policy.speed import check_stop_release, speed_control_mode
-from yawil.sim.types import DT, Control, Observation, command_index
-
-
-@dataclass(frozen=True)
-class PostProcess:
-    """From network outputs to a Control.
-
-    Outputs are clipped to the control ranges; a brake below `brake_threshold` counts as no brake (the
-    networks rarely output an exact 0); when braking, throttle is cut (`exclusive_brake`, as CILRS's
-    agent does: the expert never presses both); above `max_speed` (m/s, None = off) throttle is cut.
-    """
-
-    brake_threshold: float = 0.1
-    exclusive_brake: bool = True
-    max_speed: float | None = None
-
-    def __post_init__(self) -> None:
-        if not 0.0 <= self.brake_threshold <= 1.0:
-            raise ValueError(f"brake_threshold={self.brake_threshold!r}: expected a value in [0, 1]")
-        if self.max_speed is not None and not self.max_speed > 0.0:
-            raise ValueError(f"max_speed={self.max_speed!r}: expected None or a speed > 0 m/s")
-
-    def __call__(self, actions: np.ndarray, speed: float) -> Control:
-        a = np.nan_to_num(np.asarray(actions, dtype=np.float64), nan=0.0)
-        steer = float(np.clip(a[0], -1.0, 1.0))
-        throttle = float(np.clip(a[1], 0.0, 1.0))
-        brake = float(np.clip(a[2], 0.0, 1.0))
-        if brake < self.brake_threshold:
-            brake = 0.0
-        if brake > 0.0 and self.exclusive_brake:
-            throttle = 0.0
-        if self.max_speed is not None and speed > self.max_speed:
-            throttle = 0.0
-        return Control(steer=steer, throttle=throttle, brake=brake).validate()
-
-
-_EXPERT = ExpertConfig()  # the speed controller's gains are the expert's, from the one place they are set
-
-# "lead" (yawil.policy.speed): the target capped by `hazard_speed` on the predicted lead vehicle, with these.
-LEAD_DECEL = 1.5  # m/s^2: the "lead" cap's braking profile, gentler than the expert's 2.5 so that it binds earlier
-LEAD_SEEN = 0.9 * LEAD_RANGE  # m: a predicted lead distance beyond this counts as no lead (the label of none is LEAD_RANGE)
-
-
-@dataclass
-class SpeedControl:
-    """Throttle and brake from a predicted target speed: the expert's PI on the speed error (its gains).
-
-    Why: a policy that outputs throttle directly learns inertia (it copies its own speed, CILRS); a target
-    speed is a statement about the scene, and the controller turns a predicted stop into braking at once
-    (TransFuser++ and TCP drive their targets through controllers the same way).
-    """
-
-    kp: float = _EXPERT.kp
-    ki: float = _EXPERT.ki
-    integral_limit: float = _EXPERT.integral_limit
-    max_throttle: float = _EXPERT.max_throttle
-    brake_gain: float = _EXPERT.brake_gain
-    brake_deadband: float = _EXPERT.brake_deadband
-    stop_speed: float = 0.3  # m/s: a target below this, when nearly standing, holds the brake
-    dt: float = DT
-    integral: float = 0.0
-
-    def reset(self) -> None:
-        self.integral = 0.0
-
-    def __call__(self, target: float, speed: float) -> tuple[float, float]:
-        if target < self.stop_speed and speed < 0.5:
-            self.integral = 0.0
-            return 0.0, 1.0
-        error = target - speed
-        u = self.kp * error + self.ki * self.integral
-        if not (u >= self.max_throttle and error > 0):
-            self.integral = float(np.clip(self.integral + error * self.dt, -self.integral_limit, self.integral_limit))
-        if u < -self.brake_deadband:
-            return 0.0, float(np.clip(-u * self.brake_gain, 0.0, 1.0))
-        return float(np.clip(u, 0.0, self.max_throttle)), 0.0
-
-
-# "stop" with a release (`stop_release` seconds, yawil.policy.speed): the lead-stop class is ignored for
-# STOP_CREEP seconds once it alone has held the car standing that long; then it is armed again.
-STOP_CREEP = 2.0  # s: TransFuser++'s creep is 1.5 s (carla_garage, sensor_agent.py); ours drives the head's target
-STANDING = 0.1  # m/s: under this the car counts as standing (carla_garage's stuck detector uses the same)
-
-
-@dataclass
-class StopRelease:
-    """When to ignore the lead-stop class: it fired where no car stands (a false alarm seen on a straight
-    empty road, docs/experiments.md 2026-12-02, fourth session) and, the picture frozen once the car stands,
-    it keeps firing for ever. After `patience` seconds standing with the class the only reason to stand (the
-    head's own target speed would drive), the car drives by the head's target for `creep` seconds, so the
-    picture changes; a real standing car ahead is found again by the class once the creep ends.
-    Why a timer: a single frame cannot tell a false alarm from a real queue; TransFuser++ and TCP restart
-    stuck agents the same way (a stuck detector, then a forced creep)."""
-
-    patience: float
-    creep: float = STOP_CREEP
-    dt: float = DT
-    stood: int = 0  # steps standing held by the class alone
-    creep_left: int = 0  # steps of the creep still to drive
-
-    def reset(self) -> None:
-        self.stood = self.creep_left = 0
-
-    def released(self, speed: float, holding: bool) -> bool:
-        """One step: whether the class is ignored now. `holding`: it fires while the head would drive."""
-        if self.creep_left > 0:
-            self.creep_left -= 1
-            return True
-        self.stood = self.stood + 1 if (holding and speed < STANDING) else 0
-        if self.stood >= round(self.patience / self.dt):
-            self.stood, self.creep_left = 0, round(self.creep / self.dt) - 1
-            return True
-        return False
+from yawil.sim.types import Control, Observation, command_index
 
 
 @dataclass
@@ -170,9 +73,13 @@ class StepOutput:
 
 
 class Agent:
-    """Drives with a trained model. Options for the noise experiment (Table II): yaw_noise_deg and
-    command_noise_p with their readings yaw_noise_mode and command_noise_mode (`yawil.guidance`: compute_guidance,
-    CommandNoise), seed (the noise is drawn from a numpy Generator seeded with it)."""
+    """Drives with a trained model, one episode per slot (`slots`, default 1).
+
+    `drive`: the drive-time settings (`DriveSettings`); instead, its fields may be given as keywords
+    (speed_control="stop", stop_release=10, yaw_noise_deg=..., post=...). `engine`: where the network runs
+    (`yawil.policy.engine`: auto, torch, openvino, onnxruntime). `attention`: keep the attention maps in `last`
+    (heat maps, videos); the benchmark leaves them. `seed`: the noise stream of slot 0 (the benchmark gives each
+    episode its own with `reset(seed=...)`)."""
 
     def __init__(
         self,
@@ -183,21 +90,19 @@ class Agent:
         device: str = "cpu",
         precision: str = "auto",
         channels_last: str = "auto",
-        post: PostProcess | None = None,
-        yaw_noise_deg: float = 0.0,
-        command_noise_p: float = 0.0,
+        engine: str = "auto",
+        drive: DriveSettings | None = None,
         seed: int = 0,
-        speed_control: bool | str | None = False,
-        yaw_noise_mode: str = "raw",
-        command_noise_mode: str = "burst-start",
-        stop_release: float = 0.0,
+        slots: int = 1,
+        attention: bool = True,
+        **options: Any,
     ) -> None:
-        if yaw_noise_deg < 0.0:
-            raise ValueError(f"yaw_noise_deg={yaw_noise_deg!r}: expected >= 0 degrees")
-        if yaw_noise_mode not in YAW_NOISE_MODES:
-            raise ValueError(f"yaw_noise_mode={yaw_noise_mode!r}: expected one of {', '.join(YAW_NOISE_MODES)}")
-        if command_noise_mode not in COMMAND_NOISE_MODES:
-            raise ValueError(f"command_noise_mode={command_noise_mode!r}: expected one of {', '.join(COMMAND_NOISE_MODES)}")
+        if drive is not None and options:
+            raise ValueError(f"give the drive settings as drive=DriveSettings(...) or as keywords, not both "
+                             f"({', '.join(sorted(options))})")
+        self.drive: DriveSettings = (drive or DriveSettings.from_options(options)).check(model)
+        if isinstance(slots, bool) or not isinstance(slots, int) or slots < 1:
+            raise ValueError(f"slots={slots!r}: expected an integer >= 1")
         self.runtime: Runtime = resolve_runtime(device, precision, channels_last)
         self.model = model.to(self.runtime.device).eval()
         if self.runtime.channels_last:
@@ -211,37 +116,26 @@ class Agent:
                 f"the normalisation has {len(norm.guidance_mean)} guidance values, "
                 f"the model expects {getattr(model, 'guidance_dim', '?')}"
             )
-        name = getattr(model, "name", type(model).__name__)
-        if yaw_noise_deg > 0 and self.kind not in ("yaw", "sim_yaw"):
-            raise ValueError(f"yaw noise perturbs yaw guidance; {name} takes {self.kind or 'no'} guidance")
-        if command_noise_p > 0 and not self.uses_command:
-            raise ValueError(f"command noise perturbs the high-level command; {name} takes no command")
-        self.post = post or PostProcess()
-        self.speed_mode = speed_control_mode(speed_control)
-        if self.speed_mode is not None and getattr(model, "aux_head", None) is None:
-            raise ValueError(f"speed_control needs a model with an aux head (trained with --model-arg aux=true); "
-                             f"{getattr(model, 'name', type(model).__name__)} has none")
-        if self.speed_mode == "stop" and not getattr(model, "lead_stop", False):
-            raise ValueError(f"speed_control 'stop' needs a model with the lead-stop output (--model-arg lead_stop=true); "
-                             f"{getattr(model, 'name', type(model).__name__)} has none")
-        self.speed_control: SpeedControl | None = SpeedControl() if self.speed_mode is not None else None
-        release = check_stop_release(stop_release, self.speed_mode)
-        self.stop_release: StopRelease | None = StopRelease(release) if release else None
-        self.yaw_noise_deg = float(yaw_noise_deg)
-        self.command_noise_p = float(command_noise_p)
-        self.yaw_noise_mode = yaw_noise_mode
-        self.command_noise_mode = command_noise_mode
+        resolve_engine(engine, self.runtime)  # an unknown engine fails before any conversion
+        self.engine: Engine = make_engine(self.model, self.runtime, engine)
+        self.attention = bool(attention)
         self.seed = int(seed)
-        self._rng = np.random.default_rng(self.seed)
-        self._command_noise = self._new_command_noise() if self.command_noise_p > 0 else None
-        self._hint: int | None = None
-        self.last: StepOutput | None = None
+        self.states: list[EpisodeState] = [self.drive.episode(self.seed) for _ in range(slots)]
+        self.outputs: list[StepOutput | None] = [None] * slots
         self.checkpoint_path: str | None = None
 
     @classmethod
     def from_checkpoint(cls, path: str | os.PathLike[str], device: str = "cpu", **options: Any) -> Agent:
-        """Rebuild model, normalisation and guidance config from a yawil checkpoint (best.pt or last.pt)."""
-        ckpt = load_checkpoint(path, map_location="cpu")
+        """Rebuild model, normalisation and guidance config from a yawil checkpoint (best.pt or last.pt) or a zoo
+        model (`zoo:NAME`). A zoo model given no drive setting drives as its card says (`card.json` "drive"),
+        the settings its figures were measured with."""
+        from yawil.zoo import PREFIX, card_drive, resolve_checkpoint
+
+        given = {k for k in options if k in DriveSettings.__dataclass_fields__ or k == "drive"}
+        if str(path).startswith(PREFIX) and not given:
+            mode, release = card_drive(str(path))
+            options["drive"] = DriveSettings(speed_control=mode or None, stop_release=release)
+        ckpt = load_checkpoint(resolve_checkpoint(path), map_location="cpu")
         model = model_from_checkpoint(ckpt)
         config = GuidanceConfig.from_dict(ckpt["guidance_config"])
         agent = cls(model, Norm.from_dict(ckpt["norm"]), config, device=device, **options)
@@ -252,57 +146,56 @@ class Agent:
     def name(self) -> str:
         return str(getattr(self.model, "name", type(self.model).__name__))
 
-    def reset(self, seed: int | None = None) -> None:
-        """Start an episode: forget the route projection and any command-noise burst.
+    @property
+    def slots(self) -> int:
+        return len(self.states)
 
-        The noise stream carries on across episodes unless `seed` restarts it.
-        """
-        self._hint = None
-        self.last = None
-        if self.speed_control is not None:
-            self.speed_control.reset()
-        if self.stop_release is not None:
-            self.stop_release.reset()
-        if seed is not None:
-            self.seed = int(seed)
-            self._rng = np.random.default_rng(self.seed)
-            if self._command_noise is not None:
-                self._command_noise = self._new_command_noise()
-        if self._command_noise is not None:
-            self._command_noise.reset()
+    @property
+    def post(self) -> PostProcess:
+        return self.drive.post
 
-    def _new_command_noise(self) -> CommandNoise:
-        return CommandNoise(self.command_noise_p, self._rng, mode=self.command_noise_mode)
+    @property
+    def last(self) -> StepOutput | None:
+        """What the network said at slot 0's last step (the batch-of-1 case)."""
+        return self.outputs[0]
+
+    def reset(self, seed: int | None = None, slot: int = 0) -> None:
+        """Start an episode in `slot`: forget the route projection, the controllers' state and any command-noise
+        burst. The slot's noise stream carries on across episodes unless `seed` restarts it."""
+        old = self.states[slot]
+        state = self.drive.episode(self.seed if seed is None else seed)
+        if seed is None:  # the same stream, carried on
+            state.rng = old.rng
+            if old.command_noise is not None:
+                old.command_noise.reset()
+                state.command_noise = old.command_noise
+        else:
+            self.seed = int(seed) if slot == 0 else self.seed
+        self.states[slot] = state
+        self.outputs[slot] = None
 
     @property
     def spec(self) -> InputSpec:
         """How this agent's model takes its inputs (`yawil.policy.inputs`): normalisation, kind, command, runtime."""
         return InputSpec(self.norm, self.kind, self.uses_command, self.runtime)
 
-    def model_inputs(self, obs: Observation) -> tuple[ModelInputs, np.ndarray | None, int | None]:
-        """The network inputs of one observation (batch of 1), plus the raw guidance and command index.
-
-        The noise stream is drawn in a fixed order: the yaw noise of the guidance, then the command noise.
-        """
+    def _row(self, obs: Observation, state: EpisodeState) -> tuple[np.ndarray, np.ndarray | None, int | None]:
+        """One observation's image, raw guidance and road option, drawn from its episode's noise stream in a fixed
+        order: the yaw noise of the guidance, then the command noise."""
         img = check_observation_image(obs)
         guidance_raw: np.ndarray | None = None
         if self.kind is not None:
-            guidance_raw, self._hint = observation_guidance(
-                obs,
-                self.guidance_config,
-                self.kind,
-                hint=self._hint,
-                yaw_noise_deg=self.yaw_noise_deg,
-                rng=self._rng,
-                yaw_noise_mode=self.yaw_noise_mode,
-            )
-        option: int | None = None
-        command_idx: int | None = None
-        if self.uses_command:
-            option = int(obs.command)
-            if self._command_noise is not None:
-                option = self._command_noise(option)
-            command_idx = command_index(option)
+            guidance_raw, state.hint = observation_guidance(
+                obs, self.guidance_config, self.kind, hint=state.hint, yaw_noise_deg=self.drive.yaw_noise_deg,
+                rng=state.rng, yaw_noise_mode=self.drive.yaw_noise_mode,
+            )  # fmt: skip
+        option = self.drive.command(int(obs.command), state) if self.uses_command else None
+        return img, guidance_raw, option
+
+    def model_inputs(self, obs: Observation, slot: int = 0) -> tuple[ModelInputs, np.ndarray | None, int | None]:
+        """The network inputs of one observation (batch of 1), plus the raw guidance and command index."""
+        img, guidance_raw, option = self._row(obs, self.states[slot])
+        command_idx = None if option is None else command_index(option)
         return self.spec.from_frame(img, obs.speed, guidance_raw, option), guidance_raw, command_idx
 
     def inputs(self, obs: Observation) -> tuple[dict[str, torch.Tensor | None], np.ndarray | None, int | None]:
@@ -310,46 +203,36 @@ class Agent:
         x, guidance_raw, command_idx = self.model_inputs(obs)
         return x.as_dict(), guidance_raw, command_idx
 
-    @torch.inference_mode()
     def act(self, obs: Observation) -> Control:
-        x, guidance_raw, command_idx = self.model_inputs(obs)
-        with self.runtime.autocast():
-            out = x.forward(self.model)
-        actions = out.actions[0].float().cpu().numpy()
-        speed = float(self.norm.speed_inverse(out.speed[0, 0].float()).cpu())
-        target_speed = head_target = lead_distance = lead_speed = lead_stop = None
-        ego_speed = max(float(obs.speed), 0.0)
-        if out.aux is not None:
-            aux = out.aux[0].float().cpu()
-            target_speed = head_target = max(0.0, float(self.norm.speed_inverse(aux[0])))
-            lead_distance = max(0.0, float(aux[1]) * LEAD_RANGE)
-            lead_speed = max(0.0, float(self.norm.speed_inverse(aux[2])))
-            if self.speed_mode == "lead" and lead_distance < LEAD_SEEN:
-                target_speed = min(target_speed, hazard_speed(lead_distance, lead_speed, LEAD_DECEL))
-            if len(aux) > len(AUX_NAMES):
-                lead_stop = float(torch.sigmoid(aux[len(AUX_NAMES)]))
-                fires = self.speed_mode == "stop" and lead_stop > LEAD_STOP_FIRES
-                if self.stop_release is not None:  # ticked on every step, so a creep runs its course
-                    alone = fires and head_target >= SpeedControl.stop_speed  # the head itself would drive
-                    fires = fires and not self.stop_release.released(ego_speed, alone)
-                if fires:
-                    target_speed = 0.0
-        if self.speed_control is not None and target_speed is not None:
-            throttle, brake = self.speed_control(target_speed, ego_speed)
-            actions = np.array([actions[0], throttle, brake], dtype=np.float32)
-        control = self.post(actions, float(obs.speed))
-        self.last = StepOutput(
-            actions=actions,
-            speed=speed,
-            attention=[a[0].float().cpu().numpy() for a in out.attention],
-            branches=None if out.branches is None else out.branches[0].float().cpu().numpy(),
-            guidance=guidance_raw,
-            command=command_idx,
-            control=control,
-            target_speed=target_speed,
-            head_target_speed=head_target,
-            lead_distance=lead_distance,
-            lead_speed=lead_speed,
-            lead_stop=lead_stop,
-        )
-        return control
+        return self.act_batch([obs], [0])[0]
+
+    def act_batch(self, observations: Sequence[Observation], slots: Sequence[int] | None = None) -> list[Control]:
+        """One control per observation, the i-th of the episode in `slots[i]` (default 0, 1, ...): one forward
+        pass for all of them."""
+        slots = list(range(len(observations))) if slots is None else list(slots)
+        if len(slots) != len(observations) or len(set(slots)) != len(slots):
+            raise ValueError(f"act_batch: {len(observations)} observations for slots {slots}: one distinct slot each")
+        rows = [self._row(obs, self.states[s]) for obs, s in zip(observations, slots, strict=True)]
+        x = self.spec.from_frames([r[0] for r in rows], [o.speed for o in observations], [r[1] for r in rows],
+                                  [r[2] for r in rows])
+        out = self.engine.run(x, attention=self.attention)
+        speeds = self.norm.speed_inverse(torch.from_numpy(out.speed)).numpy()
+        controls = []
+        for i, (obs, slot) in enumerate(zip(observations, slots, strict=True)):
+            ego = max(float(obs.speed), 0.0)
+            d = self.drive.decide(out.actions[i], None if out.aux is None else out.aux[i], self._speed_of,
+                                  self.states[slot], ego)
+            control = self.drive.post(d.actions, float(obs.speed))
+            option = rows[i][2]
+            self.outputs[slot] = StepOutput(
+                actions=d.actions, speed=float(speeds[i]), attention=[a[i] for a in out.attention],
+                branches=None if out.branches is None else out.branches[i], guidance=rows[i][1],
+                command=None if option is None else command_index(option), control=control,
+                target_speed=d.target_speed, head_target_speed=d.head_target_speed, lead_distance=d.lead_distance,
+                lead_speed=d.lead_speed, lead_stop=d.lead_stop,
+            )  # fmt: skip
+            controls.append(control)
+        return controls
+
+    def _speed_of(self, value: float) -> float:
+        return float(self.norm.speed_inverse(np.float32(value)))  # type: ignore[arg-type]

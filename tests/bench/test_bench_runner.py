@@ -123,9 +123,13 @@ def test_bad_agent_and_workers(tmp_path: Path) -> None:
     with pytest.raises(ValueError, match="--yaw-noise 'both'"):
         AgentSpec(str(tmp_path / "x.pt"), yaw_noise_deg=10, yaw_noise_mode="both").validate()
     # a reading is part of the agent's options (so a resume cannot mix readings) only where its noise is on
+    # and so is the engine with its precision (yawil.policy.engine), which changes the numbers
+    engine = AgentSpec("a").engine_label()
+    assert engine in ("openvino-bf16", "onnxruntime-fp32")
     assert AgentSpec("a", yaw_noise_deg=10, yaw_noise_mode="independent").options() == {
-        "yaw_noise_deg": 10, "command_noise_p": 0.0, "yaw_noise_mode": "independent"}
-    assert AgentSpec("a", yaw_noise_mode="independent").options() == {"yaw_noise_deg": 0.0, "command_noise_p": 0.0}
+        "yaw_noise_deg": 10, "command_noise_p": 0.0, "yaw_noise_mode": "independent", "engine": engine}
+    assert AgentSpec("a", yaw_noise_mode="independent").options() == {"yaw_noise_deg": 0.0, "command_noise_p": 0.0,
+                                                                       "engine": engine}
     # the expert's settings: named in the options (a resume cannot mix experts), for the expert only
     spec = AgentSpec("expert", expert_args=("comfort_decel=1.5",)).validate()
     assert spec.options()["expert"] == {"comfort_decel": 1.5}

@@ -128,7 +128,7 @@ def test_aux_training_keep_steps_and_init_from(tmp_path: Path) -> None:
         train(_cfg(tmp_path, "misfit", data, init_from=str(tmp_path / "aux" / "last.pt")))  # no aux head here
     # an agent drives through the target-speed controller only with an aux head
     agent = Agent.from_checkpoint(tmp_path / "aux" / "last.pt", speed_control=True)
-    assert agent.speed_control is not None
+    assert agent.drive.speed_control == "target" and agent.states[0].speed_control is not None
     with pytest.raises(ValueError, match="aux head"):
         Agent.from_checkpoint(tmp_path / "misfit" / "last.pt", speed_control=True) if (tmp_path / "misfit" / "last.pt").exists() \
             else Agent(_yilratt(), Norm(0.0, 1.0, [0.0] * K, [1.0] * K), agent.guidance_config, speed_control=True)

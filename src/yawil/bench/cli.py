@@ -68,7 +68,7 @@ def _add_route_options(p: argparse.ArgumentParser | argparse._ArgumentGroup, act
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:  # type: ignore[type-arg]
-    from yawil.policy.speed import add_speed_control_arguments
+    from yawil.policy.speed import add_engine_arguments, add_speed_control_arguments
 
     p = subparsers.add_parser(
         "bench",
@@ -125,6 +125,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                    help="reading of --command-noise-p: burst-start (default) a 5-frame burst starts with p on each "
                         "quiet frame; frame-share: a share p of all frames is wrong, in 5-frame bursts")
     add_speed_control_arguments(p)
+    add_engine_arguments(p, batched=True)
     p.add_argument("--expert-arg", action="append", default=[], metavar="KEY=VALUE",
                    help="--agent expert: a setting of its ExpertConfig (docs/expert.md), e.g. comfort_decel=1.5; "
                         "repeat for more")
@@ -202,7 +203,10 @@ def _run_suite(args: argparse.Namespace) -> int:
     speed_control, stop_release = drive_options(args)
     spec = AgentSpec(args.agent, args.yaw_noise_deg, args.command_noise_p, speed_control,
                      args.yaw_noise, args.command_noise, tuple(args.expert_arg),
-                     device=agent_device(args.device), stop_release=stop_release).validate()
+                     device=agent_device(args.device), stop_release=stop_release, engine=args.engine).validate()
+    per_worker = args.episodes_per_worker
+    if args.backend != "embedded" and per_worker not in (None, 1):
+        raise ValueError(f"--episodes-per-worker {per_worker}: a CARLA server drives one episode at a time; give 1")
     factory: Any = None
     if args.backend != "embedded":
         if args.workers != 1 and servers is None:
@@ -240,6 +244,7 @@ def _run_suite(args: argparse.Namespace) -> int:
             label=args.label,
             world_factory=factory,
             executor=executor,
+            episodes_per_worker=1 if args.backend != "embedded" else per_worker,
         )
     finally:
         if world is not None:

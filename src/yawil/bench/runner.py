@@ -28,6 +28,7 @@ from yawil.policy.speed import check_stop_release, speed_control_mode
 from yawil.sim.types import Control, Observation, World
 
 EXPERT = "expert"
+EPISODES_PER_WORKER = 4  # K of a learned agent: episodes per worker in one batched forward (docs/performance.md)
 
 
 class DrivingAgent(Protocol):
@@ -51,6 +52,7 @@ class AgentSpec:
     # process loads its own copy. The expert has no model and ignores it.
     device: str = "cpu"
     stop_release: float = 0.0  # s standing before the "stop" mode's lead-stop class is ignored (yawil.agent.StopRelease)
+    engine: str = "auto"  # where a learned agent's network runs (yawil.policy.engine: auto, torch, openvino, onnxruntime)
 
     @property
     def is_expert(self) -> bool:
@@ -78,6 +80,8 @@ class AgentSpec:
             opts["stop_release"] = float(self.stop_release)
         if self.device != "cpu" and not self.is_expert:  # only when set, so the records of earlier runs still match
             opts["device"] = self.device
+        if not self.is_expert:  # the engine and its precision change the numbers, so a resume must use the same
+            opts["engine"] = self.engine_label()
         if self.expert_args:  # the settings that differ from the default expert, by name
             from yawil.expert import ExpertConfig
 
@@ -96,6 +100,8 @@ class AgentSpec:
             raise ValueError(f"--device {self.device!r}: expected cpu or cuda (auto is resolved by agent_device)")
         if self.device == "cuda" and not self.is_expert:
             agent_device("cuda")  # no CUDA device here: one line, before any episode
+        if not self.is_expert:
+            self.engine_label()  # an unknown engine, or one this device cannot run, fails here
         if self.expert_args:
             from yawil.expert import ExpertConfig
 
@@ -113,6 +119,17 @@ class AgentSpec:
             self.build(0)  # an unreadable checkpoint, or an option its model cannot take, fails before any episode
         return self
 
+    def engine_label(self) -> str:
+        """engine-precision of a learned agent on this machine (e.g. openvino-bf16; yawil.policy.engine)."""
+        from yawil.policy.engine import resolve_engine
+        from yawil.policy.runtime import Runtime, resolve_runtime
+
+        import torch
+
+        # on CUDA the precision resolve_runtime picks (fp16), named without asking for a device this machine may lack
+        runtime = Runtime(torch.device("cuda"), "fp16", True) if self.device == "cuda" else resolve_runtime(self.device)
+        return "-".join(resolve_engine(self.engine, runtime))
+
     def identity(self) -> str:
         return EXPERT if self.is_expert else str(self.checkpoint.resolve())
 
@@ -129,8 +146,8 @@ class AgentSpec:
                 h.update(block)
         return h.hexdigest()
 
-    def build(self, seed: int) -> DrivingAgent:
-        """A fresh agent; learned agents get the episode's seed for their noise."""
+    def build(self, seed: int, slots: int = 1) -> DrivingAgent:
+        """A fresh agent; learned agents get the episode's seed for their noise and `slots` episodes at once."""
         if self.is_expert:
             from yawil.expert import Expert, ExpertConfig
 
@@ -140,7 +157,8 @@ class AgentSpec:
         return Agent.from_checkpoint(  # type: ignore[no-any-return]
             self.checkpoint, yaw_noise_deg=self.yaw_noise_deg, command_noise_p=self.command_noise_p, seed=seed,
             speed_control=self.speed_control, stop_release=self.stop_release, yaw_noise_mode=self.yaw_noise_mode,
-            command_noise_mode=self.command_noise_mode, device=self.device,
+            command_noise_mode=self.command_noise_mode, device=self.device, engine=self.engine, slots=slots,
+            attention=False,
         )
 
 
@@ -175,15 +193,35 @@ def agent_device(name: str) -> str:
 
 
 @dataclass
+class _Live:
+    """An episode being driven in one slot of an EpisodeDriver."""
+
+    ep: Episode
+    world: World
+    obs: Observation
+    tracker: EpisodeTracker
+    recorder: _Recorder | None
+    wall0: float
+    attempt: int = 1
+
+
+@dataclass
 class EpisodeDriver:
-    """A world and an agent kept for many episodes of one process."""
+    """Worlds and one agent kept for many episodes of one process.
+
+    `slots` episodes are driven at once, one world each, in lockstep: one batched forward of the agent per
+    step (`Agent.act_batch`), a finished slot refilled with the next episode. An agent without `act_batch`
+    (the expert, a custom one) drives its episodes one after the other. Each episode's record depends only on
+    the episode (its world seed, the agent's engine), never on which episodes shared its steps.
+    """
 
     spec: AgentSpec
     camera: bool
     record_dir: Path | None = None
     world_factory: Callable[[], World] | None = None
     agent_factory: Callable[[int], DrivingAgent] | None = None
-    _world: World | None = None
+    slots: int = 1
+    _worlds: dict[int, World] = field(default_factory=dict)
     _agent: DrivingAgent | None = None
     _reset_takes_seed: bool = False
     _noisy: bool = field(init=False, default=False)
@@ -191,71 +229,124 @@ class EpisodeDriver:
     def __post_init__(self) -> None:
         self._noisy = bool(self.spec.yaw_noise_deg or self.spec.command_noise_p)
 
-    def world(self) -> World:
-        if self._world is None:
+    def world(self, slot: int = 0) -> World:
+        if slot not in self._worlds:
             if self.world_factory is not None:
-                self._world = self.world_factory()
+                self._worlds[slot] = self.world_factory()
             else:
                 from yawil.sim import make_world
 
-                self._world = make_world(backend="embedded")
-        return self._world
+                self._worlds[slot] = make_world(backend="embedded")
+        return self._worlds[slot]
 
-    def agent(self, seed: int) -> DrivingAgent:
+    def agent(self, seed: int, slot: int = 0) -> DrivingAgent:
         """Reuse the agent; rebuild it per episode only when its noise needs a per-episode seed it cannot take."""
         if self._agent is None or (self._noisy and not self._reset_takes_seed):
-            self._agent = self.agent_factory(seed) if self.agent_factory else self.spec.build(seed)
+            self._agent = self.agent_factory(seed) if self.agent_factory else self.spec.build(seed, self.slots)
             self._reset_takes_seed = "seed" in inspect.signature(self._agent.reset).parameters
-        if self._reset_takes_seed:
+        if slot:
+            self._agent.reset(seed=seed, slot=slot)  # type: ignore[call-arg]
+        elif self._reset_takes_seed:
             self._agent.reset(seed=seed)  # type: ignore[call-arg]
         else:
             self._agent.reset()
         return self._agent
 
-    def run(self, ep: Episode, attempts: int = 3) -> dict[str, Any]:
+    def batched(self) -> bool:
+        """Whether the agent drives several episodes per forward pass."""
+        if self.slots == 1:
+            return False
+        if self._agent is None:
+            self.agent(0)
+        return hasattr(self._agent, "act_batch") and getattr(self._agent, "slots", 1) >= self.slots
+
+    def run(self, task: Episode | Sequence[Episode]) -> dict[str, Any] | list[dict[str, Any]]:
+        """Drive one episode (its record) or a list of them (their records, in the list's order)."""
+        if isinstance(task, Episode):
+            return self.drive_one(task)
+        if not self.batched():
+            return [self.drive_one(ep) for ep in task]
+        return self.drive_many(task)
+
+    def drive_one(self, ep: Episode, attempts: int = 3) -> dict[str, Any]:
         """Drive one episode; when the simulator (not the agent) fails, reconnect and drive it again."""
         from yawil.sim.types import SimulatorError
 
         for attempt in range(1, attempts + 1):
             try:
-                return self._run_once(ep)
+                live = self._start(ep, 0)
+                while not self._step(live, self._agent.act(live.obs)):  # type: ignore[union-attr]
+                    pass
+                return self._finish(live)
             except SimulatorError as err:
-                print(f"{ep.key}: simulator error ({err}); attempt {attempt} of {attempts}", file=sys.stderr)
-                self._drop_world()
-                if attempt == attempts:
-                    raise
+                self._failed(ep, 0, err, attempt, attempts)
         raise AssertionError("unreachable")
 
-    def _drop_world(self) -> None:
+    def drive_many(self, episodes: Sequence[Episode], attempts: int = 3) -> list[dict[str, Any]]:
+        """Drive the episodes `slots` at a time in lockstep (module docstring); a slot whose simulator fails
+        drives its episode again from the start."""
+        from yawil.sim.types import SimulatorError
+
+        queue = list(reversed(episodes))
+        live: dict[int, _Live] = {}
+        done: dict[str, dict[str, Any]] = {}
+        while queue or live:
+            for slot in range(self.slots):
+                if slot not in live and queue:
+                    live[slot] = self._start(queue.pop(), slot)
+            slots = sorted(live)
+            controls = self._agent.act_batch([live[s].obs for s in slots], slots)  # type: ignore[union-attr]
+            for slot, control in zip(slots, controls, strict=True):
+                run = live[slot]
+                try:
+                    if self._step(run, control):
+                        done[run.ep.key] = self._finish(live.pop(slot))
+                except SimulatorError as err:
+                    self._failed(run.ep, slot, err, run.attempt, attempts)
+                    attempt = run.attempt + 1
+                    live[slot] = self._start(run.ep, slot)
+                    live[slot].attempt = attempt
+        return [done[ep.key] for ep in episodes]
+
+    def _failed(self, ep: Episode, slot: int, err: Exception, attempt: int, attempts: int) -> None:
+        print(f"{ep.key}: simulator error ({err}); attempt {attempt} of {attempts}", file=sys.stderr)
+        self._drop_world(slot)
+        if attempt >= attempts:
+            raise err
+
+    def _drop_world(self, slot: int = 0) -> None:
         """Forget a failed world so that the next episode opens a fresh one (a new connection)."""
-        world, self._world = self._world, None
+        world = self._worlds.pop(slot, None)
         if world is not None:
             try:
                 world.close()
             except Exception as err:  # a dead server cannot be closed cleanly; the new world replaces it
                 print(f"closing the failed world: {err}", file=sys.stderr)
 
-    def _run_once(self, ep: Episode) -> dict[str, Any]:
-        world = self.world()
+    def _start(self, ep: Episode, slot: int) -> _Live:
+        world = self.world(slot)
         wall0 = time.perf_counter()
         obs = world.reset(ep.scenario(self.camera), seed=ep.world_seed)
-        agent = self.agent(ep.world_seed)
+        self.agent(ep.world_seed, slot)
         goal = obs.route.xy[-1]
         tracker = EpisodeTracker(goal_xy=(float(goal[0]), float(goal[1])), timeout_s=ep.timeout_s)
         tracker.start(obs)
-        recorder = _Recorder(obs) if self.record_dir is not None else None
-        while True:
-            if recorder is not None:
-                recorder.add(obs)
-            obs = world.step(agent.act(obs))
-            if tracker.update(obs):
-                break
-        if recorder is not None and self.record_dir is not None:
-            recorder.add(obs)
-            video = recorder.write(self.record_dir / ep.key.replace("/", "_"))
-        else:
-            video = None
-        rec: dict[str, Any] = {
+        return _Live(ep, world, obs, tracker, _Recorder(obs) if self.record_dir is not None else None, wall0)
+
+    def _step(self, live: _Live, control: Control) -> bool:
+        """One step of one slot's world; True when its episode has ended."""
+        if live.recorder is not None:
+            live.recorder.add(live.obs)
+        live.obs = live.world.step(control)
+        return live.tracker.update(live.obs)
+
+    def _finish(self, live: _Live) -> dict[str, Any]:
+        ep, obs = live.ep, live.obs
+        video = None
+        if live.recorder is not None and self.record_dir is not None:
+            live.recorder.add(obs)
+            video = live.recorder.write(self.record_dir / ep.key.replace("/", "_"))
+        return {
             "protocol": PROTOCOL,
             "suite": ep.suite,
             "task": ep.task,
@@ -273,17 +364,15 @@ class EpisodeDriver:
             "route_length_m": ep.route.length_m,
             "planned_length_m": round(obs.route.length, 2),
             "timeout_s": round(ep.timeout_s, 2),
-            **tracker.result(),
+            **live.tracker.result(),
             "route_xy": subsample_route(obs.route.xy),
-            "wall_s": round(time.perf_counter() - wall0, 3),
+            "wall_s": round(time.perf_counter() - live.wall0, 3),
             "video": video,
         }
-        return rec
 
     def close(self) -> None:
-        if self._world is not None:
-            self._world.close()
-            self._world = None
+        for slot in list(self._worlds):
+            self._worlds.pop(slot).close()
 
 
 class _Recorder:
@@ -361,6 +450,7 @@ class DriverFactory:
     threads: int = 0
     world_factory: WorldFactories | None = None
     agent_factory: Callable[[int], DrivingAgent] | None = None
+    slots: int = 1
 
     def __call__(self, rank: int, report: Callable[[Any], None]) -> EpisodeDriver:
         if self.threads and not self.spec.is_expert:
@@ -369,7 +459,7 @@ class DriverFactory:
             torch.set_num_threads(self.threads)
         world = for_worker(self.world_factory, rank) if self.world_factory is not None else None
         return EpisodeDriver(self.spec, self.camera, Path(self.record_dir) if self.record_dir else None, world,
-                             self.agent_factory)
+                             self.agent_factory, self.slots)
 
 
 def _check_picklable(*factories: Any) -> None:
@@ -406,6 +496,7 @@ def run_benchmark(
     agent_factory: Callable[[int], DrivingAgent] | None = None,
     on_record: Callable[[Mapping[str, Any]], None] | None = None,
     executor: ExecutorConfig = ExecutorConfig(),
+    episodes_per_worker: int | None = None,
 ) -> RunSummary:
     """Drive every episode not yet in `out`, appending each record as soon as it is done.
 
@@ -413,12 +504,18 @@ def run_benchmark(
     `spec` names (any object with reset() and act(obs)); `world_factory` may be a list, one per worker (CARLA
     servers). On more than one local worker they must be picklable (module-level, or partials of such).
     `executor` says where the workers run (yawil.executor); the records are the same either way.
+    `episodes_per_worker` (K, default `EPISODES_PER_WORKER` for a learned agent, 1 for the expert): how many
+    episodes each worker drives at once with one batched forward per step (`EpisodeDriver`); the records do
+    not depend on it. A worker gets its episodes in chunks of 2K, so a kill loses at most those in flight.
     """
     executor.check()
     if agent_factory is None:
         spec.validate()
     if workers < 1:
         raise ValueError(f"--workers must be >= 1, got {workers}")
+    k = episodes_per_worker if episodes_per_worker is not None else (1 if spec.is_expert else EPISODES_PER_WORKER)
+    if isinstance(k, bool) or not isinstance(k, int) or k < 1:
+        raise ValueError(f"--episodes-per-worker must be an integer >= 1, got {k!r}")
     if isinstance(world_factory, (list, tuple)) and len(world_factory) != workers:
         raise ValueError(f"{len(world_factory)} world factories for {workers} workers: give one per worker")
     if executor.kind == "local" and workers > 1:
@@ -455,16 +552,20 @@ def run_benchmark(
         n = max(1, min(workers, len(todo)))
         inline = executor.kind == "local" and n == 1
         factory = DriverFactory(spec, use_camera, str(record_dir) if record_dir else None,
-                                0 if inline else max(1, (os.cpu_count() or 2) // workers), world_factory, agent_factory)
+                                0 if inline else max(1, (os.cpu_count() or 2) // workers), world_factory, agent_factory,
+                                k)
+        size = 1 if k == 1 else 2 * k
+        chunks = [todo[i:i + size] for i in range(0, len(todo), size)]
         try:
             with open_executor(executor, n, factory) as pool:
-                queue = list(reversed(todo))
+                queue = list(reversed(chunks))
                 while queue or len(pool):
-                    while queue and len(pool) < 2 * n:  # at most 2 episodes per worker queued: a kill loses little
-                        ep = queue.pop()
-                        pool.submit(ep.key, ep)
-                    for _, rec in pool.results():
-                        finish(rec)
+                    while queue and len(pool) < 2 * n:  # at most 2 chunks per worker queued: a kill loses little
+                        chunk = queue.pop()
+                        pool.submit(chunk[0].key, chunk[0] if size == 1 else chunk)
+                    for _, result in pool.results():
+                        for rec in result if isinstance(result, list) else [result]:
+                            finish(rec)
         finally:
             bar.close()
     return RunSummary(

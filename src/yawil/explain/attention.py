@@ -59,23 +59,18 @@ def explain_observation(agent, obs, title: str = "") -> Explained:  # type: igno
 
 def explain_record(agent, record, title: str = "") -> Explained:  # type: ignore[no-untyped-def]
     """Run the agent's network on a dataset frame, with the frame's stored speed, guidance and command (the
-    model-input contract's `from_record`: the agent's preprocessing of an observation)."""
-    import torch
-
+    model-input contract's `from_record`: the agent's preprocessing of an observation), on the agent's engine."""
     x = agent.spec.from_record(record)
-    with torch.inference_mode(), agent.runtime.autocast():
-        out = x.forward(agent.model)
-    actions = out.actions[0].float().cpu().numpy()
-    control = agent.post(actions, float(record.speed))
-    attention = [a[0].float().cpu().numpy() for a in out.attention]
-    maps, names = _maps_of(agent, x.image, attention)
+    out = agent.engine.run(x, attention=True)
+    control = agent.post(out.actions[0], float(record.speed))
+    maps, names = _maps_of(agent, x.image, [a[0] for a in out.attention])
     return Explained(
         image=np.asarray(record.image),
         maps=maps,
         steer=control.steer,
         throttle=control.throttle,
         brake=control.brake,
-        speed=float(agent.norm.speed_inverse(out.speed[0, 0].float()).cpu()),
+        speed=float(agent.norm.speed_inverse(np.float32(out.speed[0]))),
         title=title,
         layer_names=names,
     )

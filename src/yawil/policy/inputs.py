@@ -19,7 +19,7 @@ the exact values, dtypes and memory layouts) the trainer and the agent have alwa
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -124,10 +124,15 @@ class InputSpec:
         command = torch.as_tensor(raw["command"]).to(dev).long().reshape(-1) if self.uses_command else None
         return ModelInputs(image, self.norm.speed(speed_raw), guidance, command, speed_raw)
 
-    # ---- one frame (batch of 1): the camera's uint8 (H, W, 3), the speed in m/s, raw guidance, a RoadOption value
+    # ---- frames as the camera gives them: uint8 (H, W, 3), the speed in m/s, raw guidance, a RoadOption value
     def image(self, image: np.ndarray) -> Tensor:
         """uint8 (H, W, 3) -> float [1, 3, H, W] in [0, 1] on the device (a permuted view: channels_last memory)."""
-        t = torch.from_numpy(np.ascontiguousarray(image)).to(self.runtime.device).permute(2, 0, 1)[None].float().div_(255.0)
+        return self.images([image])
+
+    def images(self, images: Sequence[np.ndarray]) -> Tensor:
+        """B uint8 (H, W, 3) frames -> float [B, 3, H, W] in [0, 1] (each element as `image` gives it)."""
+        stacked = np.stack([np.ascontiguousarray(i) for i in images])
+        t = torch.from_numpy(stacked).to(self.runtime.device).permute(0, 3, 1, 2).float().div_(255.0)
         if self.runtime.channels_last:
             t = t.contiguous(memory_format=torch.channels_last)
         return t
@@ -137,20 +142,30 @@ class InputSpec:
     ) -> ModelInputs:
         """One frame's inputs. `guidance`: the raw (unnormalised) vector of the model's kind; `command`: the road
         option (RoadOption value), turned into its branch index here."""
+        return self.from_frames([image], [speed], [guidance], [command])
+
+    def from_frames(
+        self,
+        images: Sequence[np.ndarray],
+        speeds: Sequence[float],
+        guidance: Sequence[np.ndarray | None],
+        commands: Sequence[int | None],
+    ) -> ModelInputs:
+        """B frames' inputs, row by row the values `from_frame` gives each (the agent's batch of episodes)."""
         dev = self.runtime.device
         g = None
         if self.kind is not None:
-            if guidance is None:
+            if any(v is None for v in guidance):
                 raise ValueError(f"the model takes {self.kind} guidance; none was given")
-            raw = np.asarray(guidance, dtype=np.float32)
-            g = self.norm.guidance(torch.from_numpy(raw.copy()).to(dev)[None])
+            raw = np.stack([np.asarray(v, dtype=np.float32) for v in guidance])
+            g = self.norm.guidance(torch.from_numpy(raw).to(dev))
         c = None
         if self.uses_command:
-            if command is None:
+            if any(v is None for v in commands):
                 raise ValueError("the model takes the command; none was given")
-            c = torch.tensor([command_index(int(command))], dtype=torch.int64, device=dev)
-        speed_raw = torch.tensor([[float(speed)]], dtype=torch.float32, device=dev)
-        return ModelInputs(self.image(image), self.norm.speed(speed_raw), g, c, speed_raw)
+            c = torch.tensor([command_index(int(v)) for v in commands], dtype=torch.int64, device=dev)  # type: ignore[arg-type]
+        speed_raw = torch.tensor([[float(v)] for v in speeds], dtype=torch.float32, device=dev)
+        return ModelInputs(self.images(images), self.norm.speed(speed_raw), g, c, speed_raw)
 
     def from_record(self, record: Any) -> ModelInputs:
         """A stored frame (`yawil.data.schema.FrameRecord`) with its own speed, guidance and command."""

@@ -1,5 +1,6 @@
-"""How a learned agent makes throttle and brake (`speed_control`), named without torch so that the command
-lines and the benchmark's records can use the names; the controllers themselves are in `yawil.agent`.
+"""How a learned agent makes throttle and brake (`speed_control`) and where its network runs (`--engine`), named
+without torch so that the command lines and the benchmark's records can use the names; the controllers are in
+`yawil.policy.drive`, the engines in `yawil.policy.engine`.
 
 None: the network's own throttle and brake; "target": a PI controller on the aux head's target speed;
 "lead": the same with the target capped by the expert's braking rule on the aux head's predicted lead vehicle;
@@ -14,6 +15,7 @@ import argparse
 import math
 
 SPEED_CONTROLS: tuple[str, ...] = ("target", "lead", "stop")
+ENGINES: tuple[str, ...] = ("auto", "torch", "openvino", "onnxruntime")
 
 
 def speed_control_mode(value: bool | str | None) -> str | None:
@@ -46,3 +48,15 @@ def add_speed_control_arguments(p: argparse.ArgumentParser, what: str = "") -> N
     p.add_argument("--stop-release", type=float, default=0.0, metavar="SECONDS",
                    help="with --speed-control stop: after this many seconds standing with the lead-stop output the "
                         "only reason, ignore it for a 2 s creep (default 0: never)")
+
+
+def add_engine_arguments(p: argparse.ArgumentParser, batched: bool = False) -> None:
+    """--engine (and, where episodes run on workers, --episodes-per-worker), the same on every command that drives."""
+    p.add_argument("--engine", default="auto", choices=ENGINES,
+                   help="where a learned agent's network runs: auto (default: openvino in bf16 on a CPU with native "
+                        "bf16, onnxruntime in fp32 on other CPUs, torch on CUDA), or one of them; the engine and its "
+                        "precision are part of the results (docs/decisions.md)")
+    if batched:
+        p.add_argument("--episodes-per-worker", type=int, default=None, metavar="K",
+                       help="episodes each worker drives at once, one batched forward per step (default 4 for a "
+                            "learned agent, 1 for the expert; the records do not depend on it)")

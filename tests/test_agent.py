@@ -270,3 +270,18 @@ def test_stop_speed_control_releases_a_car_the_class_alone_holds(tiny_checkpoint
         Agent.from_checkpoint(path, speed_control="target", stop_release=5.0)
     with pytest.raises(ValueError, match="stop_release"):
         Agent.from_checkpoint(path, speed_control="stop", stop_release=-1.0)
+
+
+def test_a_zoo_model_drives_as_its_card_says_unless_told_otherwise() -> None:
+    """`Agent.from_checkpoint("zoo:NAME")` takes the card's drive settings (those behind its figures), so that a
+    Python user drives the model `yawil bench --agent zoo:NAME` drives; any drive option given replaces them."""
+    from yawil.policy.drive import DriveSettings
+    from yawil.zoo import read_card
+
+    card = read_card("yilratt-dagger-ego")["drive"]
+    agent = Agent.from_checkpoint("zoo:yilratt-dagger-ego", engine="torch")
+    assert (agent.drive.speed_control, agent.drive.stop_release) == (card["speed_control"], card["stop_release"])
+    plain = Agent.from_checkpoint("zoo:yilratt-dagger-ego", engine="torch", speed_control=False)
+    assert plain.drive == DriveSettings()
+    with pytest.raises(ValueError, match="unknown drive option"):
+        Agent.from_checkpoint("zoo:yilratt-dagger-ego", engine="torch", speed_controll="stop")

@@ -121,10 +121,10 @@ class AgentSpec:
 
     def engine_label(self) -> str:
         """engine-precision of a learned agent on this machine (e.g. openvino-bf16; yawil.policy.engine)."""
+        import torch
+
         from yawil.policy.engine import resolve_engine
         from yawil.policy.runtime import Runtime, resolve_runtime
-
-        import torch
 
         # on CUDA the precision resolve_runtime picks (fp16), named without asking for a device this machine may lack
         runtime = Runtime(torch.device("cuda"), "fp16", True) if self.device == "cuda" else resolve_runtime(self.device)

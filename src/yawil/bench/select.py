@@ -21,7 +21,7 @@ from typing import Any
 import numpy as np
 
 from yawil.bench.suites import TASKS, Episode, RouteSpec, load_routes
-from yawil.policy.speed import add_speed_control_arguments
+from yawil.policy.speed import add_engine_arguments, add_speed_control_arguments
 from yawil.sim.weather import TRAIN_WEATHERS
 
 VALIDATION_ROUTE_SEED = 101  # route draw of the validation set (the committed benchmark routes use seed 0)
@@ -83,7 +83,8 @@ def candidate_label(path: Path) -> str:
 
 def select_checkpoint(checkpoints: Sequence[Path], out: Path, routes: int = 3, workers: int = 1,
                       progress: bool = True, speed_control: bool | str = False,
-                      stop_release: float = 0.0) -> dict[str, Any]:
+                      stop_release: float = 0.0, engine: str = "auto",
+                      episodes_per_worker: int | None = None) -> dict[str, Any]:
     """Drive every candidate on the validation set (resumable per episode), write OUT/selection.json."""
     from yawil.bench.records import read_records
     from yawil.bench.runner import AgentSpec, run_benchmark
@@ -99,8 +100,9 @@ def select_checkpoint(checkpoints: Sequence[Path], out: Path, routes: int = 3, w
     rows: list[dict[str, Any]] = []
     for path, label in zip(checkpoints, labels, strict=True):
         ck = load_checkpoint(path, map_location="cpu")
-        spec = AgentSpec(str(path), speed_control=speed_control, stop_release=stop_release).validate()
-        run_benchmark(eps, spec, out / label, workers=workers, progress=progress, label=label)
+        spec = AgentSpec(str(path), speed_control=speed_control, stop_release=stop_release, engine=engine).validate()
+        run_benchmark(eps, spec, out / label, workers=workers, progress=progress, label=label,
+                      episodes_per_worker=episodes_per_worker)
         recs = read_records(out / label / "episodes.jsonl")
         metrics = ck.get("metrics") or []
         rows.append({
@@ -128,6 +130,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--routes", type=int, default=3, help=f"routes per task of {', '.join(VALIDATION_TASKS)} (default 3)")
     p.add_argument("--workers", type=int, default=1, help="processes driving episodes (default 1)")
     add_speed_control_arguments(p, "as yawil bench: ")
+    add_engine_arguments(p, batched=True)
     p.add_argument("--link", default=None, help="also make this path a hard link of the selected checkpoint")
     p.add_argument("--no-progress", action="store_true")
     return p
@@ -140,7 +143,7 @@ def run(args: argparse.Namespace) -> int:
             if not p.is_file():
                 raise ValueError(f"{p}: no such checkpoint file")
         result = select_checkpoint(paths, Path(args.out), args.routes, args.workers, not args.no_progress,
-                                   args.speed_control, args.stop_release)
+                                   args.speed_control, args.stop_release, args.engine, args.episodes_per_worker)
         if args.link:
             from yawil.learn.artifacts import link_or_copy
 

@@ -25,7 +25,7 @@ from yawil.bench.metrics import EpisodeTracker
 from yawil.bench.runner import AgentSpec, agent_device, drive_options
 from yawil.bench.suites import Episode, episodes
 from yawil.fileio import write_atomic
-from yawil.policy.speed import add_speed_control_arguments
+from yawil.policy.speed import add_engine_arguments, add_speed_control_arguments
 
 COLUMNS = ("time", "speed", "steer", "throttle", "brake", "agent_target_speed", "agent_lead_stop_m", "agent_lead_speed",
            "expert_steer", "expert_throttle", "expert_brake", "expert_target_speed", "expert_reason", "lead_stop_m",
@@ -120,6 +120,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="the CSV file to write")
     p.add_argument("--suite", default="all", help="the suite the episode belongs to (default all)")
     add_speed_control_arguments(p, "as yawil bench: ")
+    add_engine_arguments(p)
     p.add_argument("--expert-arg", action="append", default=[], metavar="KEY=VALUE",
                    help="a setting of the shadowing expert's ExpertConfig (and of the agent, with --agent expert)")
     p.add_argument("--device", default="cpu", choices=("cpu", "cuda", "auto"),
@@ -134,7 +135,7 @@ def run(args: argparse.Namespace) -> int:
     speed_control, stop_release = drive_options(args)
     spec = AgentSpec(args.agent, speed_control=speed_control, stop_release=stop_release,
                      expert_args=expert_args if args.agent == "expert" else (),
-                     device=agent_device(args.device)).validate()
+                     device=agent_device(args.device), engine=args.engine).validate()
     ep = find_episode(args.episode, args.suite)
     res = trace_episode(ep, spec, args.out, expert_args, progress=not args.no_progress)
     end = "success" if res.success else (res.reason or "unfinished")

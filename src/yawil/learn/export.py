@@ -3,7 +3,10 @@
 Inputs (dynamic batch), those of the model-input contract (`yawil.policy.inputs.ModelInputs`, the agent's and the
 trainer's): `image` float32 [B, 3, H, W] in [0, 1]; `speed` float32 [B, 1] normalised; then `guidance` float32
 [B, D] normalised (guided models) or `command` int64 [B] branch index (CIL, CILRS).
-Outputs: `actions` [B, 3], `pred_speed` [B, 1] (normalised; ONNX forbids reusing the input name), and `attention_i` [B, h, w] for YILRatt.
+Outputs (`yawil.policy.engine.graph_outputs`, the graph the drive-time engines run): `actions` [B, 3], `pred_speed`
+[B, 1] (normalised; ONNX forbids reusing the input name), `aux` [B, n] for models built with aux heads (target
+speed, lead vehicle, light, lead-stop logit: `yawil.models.base.AUX_NAMES`), `branches` [B, 4, 3] for CIL and
+CILRS, and `attention_i` [B, h, w] for YILRatt.
 The checkpoint's normalisation and guidance config are stored in the model's metadata (`yawil.norm`,
 `yawil.guidance_config`, `yawil.model`) so that a consumer can reproduce the agent's preprocessing.
 
@@ -65,29 +68,6 @@ def example_inputs(model: Any, batch: int, seed: int = 0, image_size: tuple[int,
     return dict(ModelInputs(image, speed, guidance, command).named())
 
 
-def _image_size(model: Any) -> tuple[int, int]:
-    size = getattr(model, "config", {}).get("image_size")
-    return (int(size[0]), int(size[1])) if size else (88, 200)
-
-
-def _wrap(model: Any, names: list[str]) -> Any:
-    """Positional inputs and a flat tuple of outputs, as the ONNX exporter wants."""
-    import torch
-
-    from yawil.policy.inputs import ModelInputs
-
-    class Flat(torch.nn.Module):
-        def __init__(self) -> None:
-            super().__init__()
-            self.model = model
-
-        def forward(self, *args: torch.Tensor) -> tuple[torch.Tensor, ...]:
-            out = ModelInputs(**dict(zip(names, args, strict=True))).forward(self.model)
-            return (out.actions, out.speed, *out.attention)
-
-    return Flat().eval()
-
-
 def export_onnx(checkpoint: str | Path, onnx_path: str | Path, opset: int = OPSET) -> Path:
     """Write the ONNX file atomically (temporary file, then rename) and return its path."""
     import json
@@ -98,18 +78,15 @@ def export_onnx(checkpoint: str | Path, onnx_path: str | Path, opset: int = OPSE
 
     from yawil.fileio import atomic_path
     from yawil.policy.checkpoint import load_checkpoint, model_from_checkpoint
-    from yawil.policy.inputs import ModelInputs
+    from yawil.policy.engine import graph_module, graph_outputs, image_size
 
     if opset < 17:
         raise ValueError(f"--opset {opset}: expected >= 17")
     ckpt = load_checkpoint(checkpoint)
     model = model_from_checkpoint(ckpt).eval()
     names = input_names(model)
-    example = example_inputs(model, 2, image_size=_image_size(model))
-    with torch.no_grad():
-        out = ModelInputs(**example).forward(model)
-    n_att = len(out.attention)
-    outputs = ["actions", "pred_speed", *[f"attention_{i}" for i in range(n_att)]]
+    example = example_inputs(model, 2, image_size=image_size(model))
+    outputs = graph_outputs(model, image_size(model))
     dynamic = {name: {0: "batch"} for name in names + outputs}
     path = Path(onnx_path)
     with atomic_path(path) as tmp_path:
@@ -118,7 +95,7 @@ def export_onnx(checkpoint: str | Path, onnx_path: str | Path, opset: int = OPSE
             warnings.simplefilter("ignore", DeprecationWarning)  # the TorchScript exporter is deprecated, not gone
             warnings.simplefilter("ignore", torch.jit.TracerWarning)  # shape checks traced as constants: intended
             torch.onnx.export(
-                _wrap(model, names), tuple(example[n] for n in names), tmp,
+                graph_module(model), tuple(example[n] for n in names), tmp,
                 input_names=names, output_names=outputs, dynamic_axes=dynamic, opset_version=opset, dynamo=False,
             )  # fmt: skip
         proto = onnx.load(tmp)
@@ -127,6 +104,7 @@ def export_onnx(checkpoint: str | Path, onnx_path: str | Path, opset: int = OPSE
             "yawil.norm": json.dumps(ckpt["norm"]),
             "yawil.guidance_config": json.dumps(ckpt["guidance_config"]),
             "yawil.guidance_kind": json.dumps(ckpt["guidance_kind"]),
+            "yawil.drive": json.dumps(_drive(str(checkpoint))),
         }
         for key, value in meta.items():
             entry = proto.metadata_props.add()
@@ -134,6 +112,21 @@ def export_onnx(checkpoint: str | Path, onnx_path: str | Path, opset: int = OPSE
         onnx.checker.check_model(proto)
         onnx.save(proto, tmp)
     return path
+
+
+def _drive(checkpoint: str) -> dict[str, Any]:
+    """How the agent drives this model (`yawil.policy.drive.DriveSettings`): a zoo model's card settings, else the
+    defaults, with the post-processing rules, so that an ONNX consumer can drive it as `yawil bench` does."""
+    from dataclasses import asdict
+
+    from yawil.policy.drive import DriveSettings
+    from yawil.zoo import PREFIX, card_drive
+
+    settings = DriveSettings()
+    if checkpoint.startswith(PREFIX):
+        mode, release = card_drive(checkpoint)
+        settings = DriveSettings(speed_control=mode or None, stop_release=release)
+    return {**asdict(settings), "reference": "yawil.policy.drive (decide, PostProcess); docs/training.md"}
 
 
 @dataclass(frozen=True)
@@ -160,12 +153,13 @@ def check_onnx(checkpoint: str | Path, onnx_path: str | Path, batch: int = 4, se
     import torch
 
     from yawil.policy.checkpoint import load_checkpoint, model_from_checkpoint
+    from yawil.policy.engine import graph_module, image_size
 
     model = model_from_checkpoint(load_checkpoint(checkpoint)).eval()
     names = input_names(model)
-    x = example_inputs(model, batch, seed=seed, image_size=_image_size(model))
+    x = example_inputs(model, batch, seed=seed, image_size=image_size(model))
     with torch.no_grad():
-        ref = _wrap(model, names)(*(x[n] for n in names))
+        ref = graph_module(model)(*(x[n] for n in names))
     session = ort.InferenceSession(str(onnx_path), providers=["CPUExecutionProvider"])
     got = session.run(None, {n: x[n].numpy() for n in names})
     outputs = [o.name for o in session.get_outputs()]

@@ -137,8 +137,8 @@ class GraphEngine(Engine):
             else:
                 buf = io.BytesIO()
                 dynamic = {n: {0: "batch"} for n in self.inputs + self.outputs}
-                torch.onnx.export(flat, example, buf, input_names=self.inputs, output_names=self.outputs,
-                                  dynamic_axes=dynamic, opset_version=17, dynamo=False)
+                torch.onnx.export(flat, example, buf, input_names=self.inputs,  # type: ignore[arg-type]
+                                  output_names=self.outputs, dynamic_axes=dynamic, opset_version=17, dynamo=False)
                 self._onnx = buf.getvalue()
         self._compiled: dict[int, Any] = {}
 
@@ -156,7 +156,7 @@ class GraphEngine(Engine):
             hint = "bf16" if self.precision == "bf16" else "f32"
             compiled = self._ov.Core().compile_model(graph, "CPU", {
                 "INFERENCE_NUM_THREADS": self.threads, "INFERENCE_PRECISION_HINT": hint, "NUM_STREAMS": 1,
-                "PERFORMANCE_HINT": "LATENCY"})
+                "PERFORMANCE_HINT": "LATENCY", "ENABLE_CPU_PINNING": False})  # pinned, two workers share core 0
             return compiled.create_infer_request()
         import onnxruntime as ort
 

@@ -47,10 +47,10 @@ def compact_checkpoint(ckpt: dict[str, Any], omitted: list[str]) -> dict[str, An
 
 
 def probe_agent(checkpoint: str | Path) -> Any:
-    """The checkpoint's agent as the probe runs it: fp32 on the CPU, no channels_last (the same on any CPU)."""
+    """The checkpoint's agent as the probe runs it: torch, fp32 on the CPU, no channels_last (the same on any CPU)."""
     from yawil.agent import Agent
 
-    return Agent.from_checkpoint(checkpoint, precision="fp32", channels_last="off")
+    return Agent.from_checkpoint(checkpoint, precision="fp32", channels_last="off", engine="torch")
 
 
 def probe_inputs(agent: Any, probe: dict[str, np.ndarray], i: int) -> Any:

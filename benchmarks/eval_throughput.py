@@ -52,6 +52,7 @@ def main() -> int:
     ap.add_argument("--workers", type=int, default=2)
     ap.add_argument("--routes", default="0:4")
     ap.add_argument("--device", default="cpu", choices=("cpu", "cuda"))
+    ap.add_argument("--keep", default=None, help="keep each configuration's results folder under this folder")
     ap.add_argument("--configs", default="torch:1,auto:1,auto:4",
                     help="ENGINE:K pairs, the first the baseline (default torch:1,auto:1,auto:4)")
     args = ap.parse_args()
@@ -64,7 +65,8 @@ def main() -> int:
           f"agent {args.agent}, {args.workers} workers, device {args.device}")
     print(f"CPU: {cpu_model()}, {os.cpu_count()} cores; load average before: {load0[0]:.2f} {load0[1]:.2f} {load0[2]:.2f}")
     rows, records = [], {}
-    with tempfile.TemporaryDirectory() as tmp:
+    with tempfile.TemporaryDirectory() as scratch:
+        tmp = args.keep or scratch
         for engine, k in configs:
             spec = AgentSpec(args.agent, speed_control=mode, stop_release=release, device=args.device, engine=engine)
             label = f"{spec.engine_label()} K={k}"
@@ -88,9 +90,13 @@ def main() -> int:
     for e in sorted(engines):
         ks = sorted(k for ee, k in records if ee == e)
         for k in ks[1:]:
-            equal = records[(e, ks[0])] == records[(e, k)]
-            same &= equal
-            print(f"records of {e}: K={ks[0]} and K={k} {'identical' if equal else 'DIFFER'} (every field but wall_s)")
+            a, b = records[(e, ks[0])], records[(e, k)]
+            differ = sorted(key for key in a if a[key] != b.get(key))
+            same &= not differ
+            print(f"records of {e}: K={ks[0]} and K={k} {'identical' if not differ else 'DIFFER'} (every field but wall_s)")
+            for key in differ:
+                fields = [f for f in a[key] if a[key][f] != b[key].get(f)]
+                print(f"  {key}: {', '.join(fields)} (steps {a[key]['steps']} and {b[key]['steps']})")
     return 0 if same else 1
 
 

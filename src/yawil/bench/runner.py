@@ -28,7 +28,23 @@ from yawil.policy.speed import check_stop_release, speed_control_mode
 from yawil.sim.types import Control, Observation, World
 
 EXPERT = "expert"
-EPISODES_PER_WORKER = 4  # K of a learned agent: episodes per worker in one batched forward (docs/performance.md)
+EPISODES_PER_WORKER = 4  # K of a learned agent where a batch pays (CUDA, AMX CPUs; docs/performance.md)
+
+
+def default_episodes_per_worker(spec: AgentSpec) -> int:
+    """K when none is given: EPISODES_PER_WORKER for a learned agent on CUDA or on a CPU with AMX, where a batch
+    of frames costs much less than its frames one by one; 1 elsewhere (on an AVX512-BF16 CPU without AMX a batch
+    of 8 saved 6 % of the forward and K=4 ran at 0.85x of K=1: docs/performance.md); 1 for the expert."""
+    if spec.is_expert:
+        return 1
+    if spec.device == "cuda":
+        return EPISODES_PER_WORKER
+    try:
+        with open("/proc/cpuinfo") as fh:
+            amx = " amx_tile" in fh.read()
+    except OSError:
+        amx = False
+    return EPISODES_PER_WORKER if amx else 1
 
 
 class DrivingAgent(Protocol):
@@ -504,16 +520,17 @@ def run_benchmark(
     `spec` names (any object with reset() and act(obs)); `world_factory` may be a list, one per worker (CARLA
     servers). On more than one local worker they must be picklable (module-level, or partials of such).
     `executor` says where the workers run (yawil.executor); the records are the same either way.
-    `episodes_per_worker` (K, default `EPISODES_PER_WORKER` for a learned agent, 1 for the expert): how many
+    `episodes_per_worker` (K, default `default_episodes_per_worker`): how many
     episodes each worker drives at once with one batched forward per step (`EpisodeDriver`); the records do
-    not depend on it. A worker gets its episodes in chunks of 2K, so a kill loses at most those in flight.
+    not depend on it. A worker gets its episodes in chunks of up to 2K (smaller when there are few, so that no
+    worker idles), so a kill loses at most those in flight.
     """
     executor.check()
     if agent_factory is None:
         spec.validate()
     if workers < 1:
         raise ValueError(f"--workers must be >= 1, got {workers}")
-    k = episodes_per_worker if episodes_per_worker is not None else (1 if spec.is_expert else EPISODES_PER_WORKER)
+    k = episodes_per_worker if episodes_per_worker is not None else default_episodes_per_worker(spec)
     if isinstance(k, bool) or not isinstance(k, int) or k < 1:
         raise ValueError(f"--episodes-per-worker must be an integer >= 1, got {k!r}")
     if isinstance(world_factory, (list, tuple)) and len(world_factory) != workers:
@@ -554,7 +571,8 @@ def run_benchmark(
         factory = DriverFactory(spec, use_camera, str(record_dir) if record_dir else None,
                                 0 if inline else max(1, (os.cpu_count() or 2) // workers), world_factory, agent_factory,
                                 k)
-        size = 1 if k == 1 else 2 * k
+        # chunks of up to 2K episodes (a slot refilled within its chunk), but never so few that a worker idles
+        size = 1 if k == 1 else max(1, min(2 * k, -(-len(todo) // n)))
         chunks = [todo[i:i + size] for i in range(0, len(todo), size)]
         try:
             with open_executor(executor, n, factory) as pool:

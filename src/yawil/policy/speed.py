@@ -58,5 +58,5 @@ def add_engine_arguments(p: argparse.ArgumentParser, batched: bool = False) -> N
                         "precision are part of the results (docs/decisions.md)")
     if batched:
         p.add_argument("--episodes-per-worker", type=int, default=None, metavar="K",
-                       help="episodes each worker drives at once, one batched forward per step (default 4 for a "
-                            "learned agent, 1 for the expert; the records do not depend on it)")
+                       help="episodes each worker drives at once, one batched forward per step (default: 4 for a "
+                            "learned agent on CUDA or an AMX CPU, else 1; docs/performance.md)")

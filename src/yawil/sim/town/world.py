@@ -139,6 +139,7 @@ class EmbeddedWorld:
     def _ensure_renderer(self) -> None:
         assert self.town is not None
         if self._renderer is not None and self._renderer_town == self.town.name:
+            self._renderer.forget_actors()  # a reused renderer starts the episode as a new one would
             return
         self.close()
         from yawil.sim.town.render.renderer import CameraRenderer

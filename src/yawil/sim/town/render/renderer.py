@@ -381,6 +381,13 @@ class CameraRenderer:
         for aid in [aid for aid in self._slot_of if aid not in seen]:
             self._slot_of.pop(aid).release()
 
+    def forget_actors(self) -> None:
+        """A new episode: every actor slot free, so that actors take slots in the order this episode shows them,
+        whatever earlier episodes left (an episode's images never depend on the renderer's history)."""
+        for slot in self._slot_of.values():
+            slot.release()
+        self._slot_of.clear()
+
     def _free_slot(self) -> _Slot:
         for slot in self._slots:
             if slot.actor is None:

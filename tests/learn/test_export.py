@@ -31,12 +31,12 @@ def test_cil_export_agrees_with_torch(tmp_path: Path, tiny_checkpoint: Any, caps
     assert "max abs difference" in printed and "FAIL" not in printed
     proto = onnx.load(str(out))
     assert [i.name for i in proto.graph.input] == ["image", "speed", "command"]
-    assert [o.name for o in proto.graph.output] == ["actions", "pred_speed"]
+    assert [o.name for o in proto.graph.output] == ["actions", "pred_speed", "branches"]  # every branch, for a consumer
     assert max(op.version for op in proto.opset_import if op.domain in ("", "ai.onnx")) >= 17
     meta = {p.key: p.value for p in proto.metadata_props}
     assert json.loads(meta["yawil.norm"])["speed_mean"] == 2.0
     agreement = check_onnx(ckpt, out, batch=3, seed=7)  # another batch size: the batch is dynamic
-    assert [a.output for a in agreement] == ["actions", "pred_speed"]
+    assert [a.output for a in agreement] == ["actions", "pred_speed", "branches"]
     assert all(a.max_abs_diff <= 1e-4 for a in agreement)
     # the branch is chosen by the command input inside the graph
     sess = ort.InferenceSession(str(out), providers=["CPUExecutionProvider"])

@@ -185,8 +185,8 @@ def test_the_dagger_learner_drives_as_benched(tiny_checkpoint: Any) -> None:
     from yawil.pipelines.dagger import load_learner
 
     path, _ = tiny_checkpoint("yilratt", guidance=AGENT_GC, spread=True, aux=True)
-    assert load_learner(str(path), 1, True).speed_control is not None
-    assert load_learner(str(path), 1).speed_control is None
+    assert load_learner(str(path), 1, True).drive.speed_control == "target"
+    assert load_learner(str(path), 1).drive.speed_control is None
 
 
 def test_a_tiny_dagger_run_end_to_end_and_resumed(tmp_path: Path) -> None:

@@ -127,12 +127,15 @@ class InputSpec:
     # ---- frames as the camera gives them: uint8 (H, W, 3), the speed in m/s, raw guidance, a RoadOption value
     def image(self, image: np.ndarray) -> Tensor:
         """uint8 (H, W, 3) -> float [1, 3, H, W] in [0, 1] on the device (a permuted view: channels_last memory)."""
-        return self.images([image])
+        t = torch.from_numpy(np.ascontiguousarray(image)).to(self.runtime.device).permute(2, 0, 1)[None].float().div_(255.0)
+        if self.runtime.channels_last:
+            t = t.contiguous(memory_format=torch.channels_last)
+        return t
 
     def images(self, images: Sequence[np.ndarray]) -> Tensor:
-        """B uint8 (H, W, 3) frames -> float [B, 3, H, W] in [0, 1] (each element as `image` gives it)."""
-        stacked = np.stack([np.ascontiguousarray(i) for i in images])
-        t = torch.from_numpy(stacked).to(self.runtime.device).permute(0, 3, 1, 2).float().div_(255.0)
+        """B uint8 (H, W, 3) frames -> float [B, 3, H, W] in [0, 1], each row as `image` gives it."""
+        rows = [self.image(i) for i in images]
+        t = rows[0] if len(rows) == 1 else torch.cat(rows)
         if self.runtime.channels_last:
             t = t.contiguous(memory_format=torch.channels_last)
         return t

@@ -53,9 +53,9 @@ def add_speed_control_arguments(p: argparse.ArgumentParser, what: str = "") -> N
 def add_engine_arguments(p: argparse.ArgumentParser, batched: bool = False) -> None:
     """--engine (and, where episodes run on workers, --episodes-per-worker), the same on every command that drives."""
     p.add_argument("--engine", default="auto", choices=ENGINES,
-                   help="where a learned agent's network runs: auto (default: openvino in bf16 on a CPU with native "
-                        "bf16, onnxruntime in fp32 on other CPUs, torch on CUDA), or one of them; the engine and its "
-                        "precision are part of the results (docs/decisions.md)")
+                   help="where a learned agent's network runs: auto (default: torch in bf16 on a CPU with native bf16 "
+                        "and on CUDA, onnxruntime in fp32 on other CPUs), or one of them (openvino: opt-in, pip install "
+                        "openvino); the engine and its precision are part of the results (docs/decisions.md)")
     if batched:
         p.add_argument("--episodes-per-worker", type=int, default=None, metavar="K",
                        help="episodes each worker drives at once, one batched forward per step (default: 4 for a "

@@ -58,5 +58,6 @@ def add_engine_arguments(p: argparse.ArgumentParser, batched: bool = False) -> N
                         "openvino); the engine and its precision are part of the results (docs/decisions.md)")
     if batched:
         p.add_argument("--episodes-per-worker", type=int, default=None, metavar="K",
-                       help="episodes each worker drives at once, one batched forward per step (default: 4 for a "
-                            "learned agent on CUDA or an AMX CPU, else 1; docs/performance.md)")
+                       help="episodes each worker drives at once, one batched forward per step (default 1; K > 1 is "
+                            "faster where a batch pays, and not yet shown to give K=1's records on long episodes: "
+                            "docs/performance.md)")

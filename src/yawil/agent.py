@@ -41,7 +41,7 @@ from yawil.policy.drive import (  # noqa: F401  (re-exported: the names users an
     SpeedControl,
     StopRelease,
 )
-from yawil.policy.engine import Engine, make_engine, resolve_engine
+from yawil.policy.engine import Engine, make_engine
 from yawil.policy.inputs import (
     InputSpec,
     ModelInputs,
@@ -116,7 +116,6 @@ class Agent:
                 f"the normalisation has {len(norm.guidance_mean)} guidance values, "
                 f"the model expects {getattr(model, 'guidance_dim', '?')}"
             )
-        resolve_engine(engine, self.runtime)  # an unknown engine fails before any conversion
         self.engine: Engine = make_engine(self.model, self.runtime, engine)
         self.attention = bool(attention)
         self.seed = int(seed)
@@ -169,8 +168,8 @@ class Agent:
             if old.command_noise is not None:
                 old.command_noise.reset()
                 state.command_noise = old.command_noise
-        else:
-            self.seed = int(seed) if slot == 0 else self.seed
+        elif slot == 0:
+            self.seed = int(seed)
         self.states[slot] = state
         self.outputs[slot] = None
 
@@ -216,7 +215,7 @@ class Agent:
         x = self.spec.from_frames([r[0] for r in rows], [o.speed for o in observations], [r[1] for r in rows],
                                   [r[2] for r in rows])
         out = self.engine.run(x, attention=self.attention)
-        speeds = self.norm.speed_inverse(torch.from_numpy(out.speed)).numpy()
+        speeds = self.norm.speed_inverse(out.speed)  # type: ignore[arg-type]  # x * std + mean, numpy too
         controls = []
         for i, (obs, slot) in enumerate(zip(observations, slots, strict=True)):
             ego = max(float(obs.speed), 0.0)

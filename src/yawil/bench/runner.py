@@ -28,15 +28,11 @@ from yawil.policy.speed import check_stop_release, speed_control_mode
 from yawil.sim.types import Control, Observation, World
 
 EXPERT = "expert"
-EPISODES_PER_WORKER = 1  # K when none is given (docs/performance.md "Evaluation throughput")
-
-
-def default_episodes_per_worker(spec: AgentSpec) -> int:
-    """K when none is given: 1. Batched evaluation (K > 1) is opt-in until its records are shown to equal K=1's on
-    long episodes: on the 16-episode throughput set, K=4 changed 2 (OpenVINO) and more (torch) of the 16
-    records although the engines' rows are batch-invariant and a single episode drives the same alone and
-    among others (docs/performance.md); and on a CPU without AMX it was no faster."""
-    return EPISODES_PER_WORKER
+# K when none is given: 1. Batched evaluation (K > 1) is opt-in until its records are shown to equal K=1's on long
+# episodes: on the 16-episode throughput set K=4 changed 2 (OpenVINO) and 11 (torch) of the 16 records, although
+# the engines' rows are batch-invariant and one episode drives the same alone and among others; and on a CPU
+# without AMX it was at most 1.07x faster (docs/performance.md "Evaluation throughput").
+EPISODES_PER_WORKER = 1
 
 
 class DrivingAgent(Protocol):
@@ -512,7 +508,7 @@ def run_benchmark(
     `spec` names (any object with reset() and act(obs)); `world_factory` may be a list, one per worker (CARLA
     servers). On more than one local worker they must be picklable (module-level, or partials of such).
     `executor` says where the workers run (yawil.executor); the records are the same either way.
-    `episodes_per_worker` (K, default `default_episodes_per_worker`): how many
+    `episodes_per_worker` (K, default `EPISODES_PER_WORKER`): how many
     episodes each worker drives at once with one batched forward per step (`EpisodeDriver`); the records do
     not depend on it. A worker gets its episodes in chunks of up to 2K (smaller when there are few, so that no
     worker idles), so a kill loses at most those in flight.
@@ -522,7 +518,7 @@ def run_benchmark(
         spec.validate()
     if workers < 1:
         raise ValueError(f"--workers must be >= 1, got {workers}")
-    k = episodes_per_worker if episodes_per_worker is not None else default_episodes_per_worker(spec)
+    k = EPISODES_PER_WORKER if episodes_per_worker is None else episodes_per_worker
     if isinstance(k, bool) or not isinstance(k, int) or k < 1:
         raise ValueError(f"--episodes-per-worker must be an integer >= 1, got {k!r}")
     if isinstance(world_factory, (list, tuple)) and len(world_factory) != workers:

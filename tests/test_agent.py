@@ -239,6 +239,25 @@ def test_stop_release_times_a_creep_after_standing_held_by_the_class_alone() -> 
     assert not any(r.released(0.0, True) for _ in range(9))
 
 
+def test_stop_creep_ends_once_the_car_has_moved_its_distance() -> None:
+    """StopRelease(creep_distance=d): the creep ends, and the class counts again, on the step the car has driven
+    d metres (a creep toward a real queue stops short of it); a creep that moves less runs its full time."""
+    from yawil.agent import StopRelease
+
+    r = StopRelease(patience=1.0, creep=2.0, creep_distance=0.5, dt=0.1)
+    assert not any(r.released(0.0, True) for _ in range(9)) and r.released(0.0, True)  # the creep starts
+    moving = [r.released(1.0, True) for _ in range(8)]  # 0.1 m a step
+    assert moving[:4] == [True] * 4 and moving[4] is False  # the 5th step reaches 0.5 m: armed again
+    assert r.creep_left == 0 and r.stood == 0
+    slow = StopRelease(patience=1.0, creep=2.0, creep_distance=5.0, dt=0.1)
+    assert [slow.released(0.0, True) for _ in range(10)][-1]
+    assert all(slow.released(0.2, True) for _ in range(19)) and not slow.released(0.0, False)  # 0.38 m: full 2 s
+    with pytest.raises(ValueError, match="stop_creep"):
+        from yawil.policy.drive import DriveSettings
+
+        DriveSettings(speed_control="stop", stop_creep=1.0)  # a creep length without a release
+
+
 @pytest.mark.parametrize("release", [0.0, 0.5])
 def test_stop_speed_control_releases_a_car_the_class_alone_holds(tiny_checkpoint: Any, release: float) -> None:
     """speed_control="stop" with stop_release: the firing class holds a standing car `stop_release` s, then the

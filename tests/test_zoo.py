@@ -64,11 +64,12 @@ def test_zoo_names_resolve_everywhere_a_checkpoint_is_taken(packed: Path, capsys
 
     assert Agent.from_checkpoint("zoo:tiny").name == "yilratt"
     spec = AgentSpec("zoo:tiny", speed_control="stop", stop_release=10.0).validate()
-    assert spec.identity() == str((zoo.ZOO_DIR / "tiny" / zoo.WEIGHTS).resolve()) and spec.content_hash()
+    assert spec.identity() == "zoo:tiny"  # records name it the same on every machine, its hash beside it
+    assert spec.content_hash() == zoo.read_card("tiny")["weights_sha256"]
     args = type("A", (), {"agent": "zoo:tiny", "speed_control": False, "stop_release": 0.0})()
-    assert drive_options(args) == ("stop", 10.0)  # the card's way of driving when none is given
+    assert drive_options(args) == {"speed_control": "stop", "stop_release": 10.0, "stop_creep": 0.0}  # the card's
     args.speed_control = "target"
-    assert drive_options(args) == ("target", 0.0)
+    assert drive_options(args) == {"speed_control": "target", "stop_release": 0.0, "stop_creep": 0.0}
     assert main(["models", "--zoo"]) == 0 and "tiny" in capsys.readouterr().out
     assert main(["zoo", "check"]) == 0 and "zoo:tiny" in capsys.readouterr().out
     with pytest.raises(SystemExit, match=r"no such zoo model \(the zoo has: tiny\)"):
@@ -85,8 +86,67 @@ def test_pack_refuses_bad_input(tmp_path: Path, tiny_checkpoint: Any, capsys: py
     assert "expected a JSON object" in capsys.readouterr().err
     card.write_text(json.dumps({}))
     assert main(["zoo", "pack", str(ckpt), "--name", "x", "--data", str(tmp_path / "none"), "--card", str(card)]) == 2
-    assert "no episode files" in capsys.readouterr().err
+    assert "fails yawil data check" in capsys.readouterr().err
     assert main(["zoo", "pack", str(ckpt), "--name", "../x", "--data", str(tmp_path), "--card", str(card)]) == 2
+
+
+def test_pack_checks_everything_first_and_replaces_only_with_force(tmp_path: Path, tiny_checkpoint: Any,
+                                                                   tiny_dataset: Any, monkeypatch: pytest.MonkeyPatch,
+                                                                   capsys: pytest.CaptureFixture[str]) -> None:
+    from yawil.cli import main
+
+    ckpt = str(tiny_checkpoint("yaw-guided", guidance_dim=15).path)
+    data = tiny_dataset(episodes=2, frames=5, k=15)
+    card = tmp_path / "card.json"
+    monkeypatch.chdir(tmp_path)
+
+    def pack_with(fields: dict[str, Any], *extra: str) -> tuple[int, str]:
+        card.write_text(json.dumps(fields))
+        rc = main(["zoo", "pack", ckpt, "--name", "m", "--data", str(data), "--card", str(card), "--frames", "2",
+                   *extra])
+        return rc, capsys.readouterr().err
+
+    for fields, text in [({"sumary": "typo"}, "unknown field(s) sumary"), ({"probe": {}}, "written by yawil zoo pack"),
+                         ({"drive": {"speed_control": "fast"}}, "drive: speed_control='fast'"),
+                         ({"drive": {"stop_release": 5}}, "applies to --speed-control stop")]:
+        rc, err = pack_with(fields)
+        assert rc == 2 and text in err, err
+    assert not (tmp_path / "zoo").exists()
+    assert pack_with({"summary": "first"})[0] == 0  # the default --out is ./zoo, not the installed package
+    first = (tmp_path / "zoo" / "m" / zoo.CARD).read_text()
+    rc, err = pack_with({"summary": "second"})
+    assert rc == 2 and "give --force" in err and (tmp_path / "zoo" / "m" / zoo.CARD).read_text() == first
+    assert pack_with({"summary": "second"}, "--force")[0] == 0
+    assert json.loads((tmp_path / "zoo" / "m" / zoo.CARD).read_text())["summary"] == "second"
+    assert sorted(p.name for p in (tmp_path / "zoo").iterdir()) == ["m"]  # no temporary folder left
+    import shutil
+
+    data = Path(shutil.copytree(data, tmp_path / "data"))  # the fixture's dataset is shared: damage a copy
+    next(iter(sorted(data.glob("**/*.h5")))).unlink()  # a dataset with a missing episode file
+    rc, err = pack_with({"summary": "third"}, "--force", "--out", str(tmp_path / "z2"))
+    assert rc == 2 and "fails yawil data check" in err and not (tmp_path / "z2").exists()
+
+
+def test_damaged_weights_are_named_not_driven(packed: Path, tmp_path: Path) -> None:
+    """A zoo model whose weights differ from its card's SHA-256, and a checkpoint whose weights differ from the
+    digest stored in it, are refused in one line naming the file (flipped bytes otherwise load and drive)."""
+    from yawil.policy.checkpoint import load_checkpoint, save_checkpoint
+
+    ckpt = load_checkpoint(packed)
+    damaged = tmp_path / "damaged.pt"
+    save_checkpoint(ckpt, damaged)
+    stored = torch.load(damaged, weights_only=False)
+    name = next(k for k, v in stored["state_dict"].items() if v.is_floating_point() and v.numel() > 8)
+    stored["state_dict"][name].view(-1)[3] += 1e26
+    torch.save(stored, damaged)
+    with pytest.raises(ValueError, match="damaged.pt: its weights do not match the SHA-256"):
+        load_checkpoint(damaged)
+    weights = zoo.ZOO_DIR / "tiny" / zoo.WEIGHTS
+    raw = bytearray(weights.read_bytes())
+    raw[len(raw) // 2] ^= 0xFF
+    weights.write_bytes(bytes(raw))
+    with pytest.raises(ValueError, match="differs from its card's weights_sha256"):
+        load_checkpoint("zoo:tiny")
 
 
 @pytest.mark.parametrize("name", zoo.zoo_names())

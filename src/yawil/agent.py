@@ -132,8 +132,7 @@ class Agent:
 
         given = {k for k in options if k in DriveSettings.__dataclass_fields__ or k == "drive"}
         if str(path).startswith(PREFIX) and not given:
-            mode, release = card_drive(str(path))
-            options.update(speed_control=mode or None, stop_release=release)
+            options.update(card_drive(str(path)))
         ckpt = load_checkpoint(resolve_checkpoint(path), map_location="cpu")
         model = model_from_checkpoint(ckpt)
         config = GuidanceConfig.from_dict(ckpt["guidance_config"])

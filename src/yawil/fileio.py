@@ -94,3 +94,52 @@ def write_json_atomic(path: str | os.PathLike[str], obj: Any) -> None:
     """Write `obj` as indented JSON with sorted keys and a final newline, atomically (`write_atomic`): run
     descriptions, stage markers, route files, tables' data."""
     write_atomic(path, json.dumps(obj, indent=2, sort_keys=True) + "\n")
+
+
+# A folder holding one of these belongs to a yawil stage (a dataset, a training or DAgger run, a results folder,
+# a zoo model): its files are that stage's, and no file option of another command replaces them.
+OWNED_MARKERS = (".yawil.lock", "manifest.json", "card.json")
+
+
+def owning_folder(path: str | os.PathLike[str]) -> Path | None:
+    """The nearest folder at or above `path`'s folder that a yawil stage owns (`OWNED_MARKERS`), or None."""
+    folder = Path(path).absolute().parent
+    for parent in (folder, *folder.parents):
+        if any((parent / marker).exists() for marker in OWNED_MARKERS):
+            return parent
+    return None
+
+
+def check_output_file(path: str | os.PathLike[str], option: str, force: bool = False,
+                      own: tuple[str, ...] = ()) -> Path:
+    """Refuse, in one line naming the file, an output file that would replace a file the command did not make:
+    an existing file needs `force` (`--force`), and a file inside a dataset, run, results or zoo folder is never
+    replaced, whatever `force` says. `own`: names this command itself writes there (its default output, e.g. a
+    dataset's stats.png), which it may replace. Checked before any work, so a refusal costs nothing."""
+    path = Path(path)
+    if path.is_dir():
+        raise ValueError(f"{option} {path}: is a folder; expected the name of a file to write")
+    if path.name in OWNED_MARKERS or path.name.startswith(".yawil"):
+        raise ValueError(f"{option} {path}: a yawil bookkeeping file; write elsewhere")
+    if not path.exists() and not path.is_symlink():
+        return path
+    if path.name in own:
+        return path
+    owner = owning_folder(path)
+    if owner is not None:
+        raise ValueError(f"{option} {path}: exists inside {owner}, which a yawil dataset, run or model owns; "
+                         "write the file elsewhere (--force does not replace files there)")
+    if not force:
+        raise ValueError(f"{option} {path}: exists; give --force to replace it, or another file name")
+    return path
+
+
+def file_sha256(path: str | os.PathLike[str]) -> str:
+    """SHA-256 of a file's bytes, read in blocks (checkpoints, zoo weights)."""
+    import hashlib
+
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for block in iter(lambda: fh.read(1 << 20), b""):
+            h.update(block)
+    return h.hexdigest()

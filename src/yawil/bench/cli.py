@@ -200,10 +200,9 @@ def _run_suite(args: argparse.Namespace) -> int:
 
     executor = executor_from_args(args)
     servers = servers_for(args.carla_servers, args.workers, args.backend)
-    speed_control, stop_release = drive_options(args)
-    spec = AgentSpec(args.agent, args.yaw_noise_deg, args.command_noise_p, speed_control,
-                     args.yaw_noise, args.command_noise, tuple(args.expert_arg),
-                     device=agent_device(args.device), stop_release=stop_release, engine=args.engine).validate()
+    spec = AgentSpec(args.agent, args.yaw_noise_deg, args.command_noise_p, yaw_noise_mode=args.yaw_noise,
+                     command_noise_mode=args.command_noise, expert_args=tuple(args.expert_arg),
+                     device=agent_device(args.device), engine=args.engine, **drive_options(args)).validate()
     per_worker = args.episodes_per_worker
     if args.backend != "embedded" and per_worker not in (None, 1):
         raise ValueError(f"--episodes-per-worker {per_worker}: a CARLA server drives one episode at a time; give 1")

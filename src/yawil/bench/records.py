@@ -149,6 +149,8 @@ def check_run_info(folder: str | Path, info: Mapping[str, Any], label_given: boo
             raise ValueError(f"{path}: results {_other_protocol(old.get('protocol', 1))}")
         keys = ["agent", "agent_options"] + (["label"] if label_given else [])
         for key in keys:
+            if key == "agent" and _zoo_path_of(old.get(key)) == info.get(key):
+                continue  # written before records named zoo models zoo:NAME (the hash below still compares)
             if old.get(key) != info.get(key):
                 raise ValueError(
                     f"{path}: results folder belongs to {key}={old.get(key)!r}, this run has {info.get(key)!r}; "
@@ -162,6 +164,14 @@ def check_run_info(folder: str | Path, info: Mapping[str, Any], label_given: boo
             )
         return
     write_json_atomic(path, {**info, "protocol": PROTOCOL})
+
+
+def _zoo_path_of(agent: Any) -> str | None:
+    """`zoo:NAME` for the installed path of a zoo model's weights (how records named one before), else None."""
+    parts = Path(str(agent)).parts
+    if len(parts) >= 3 and parts[-1] == "model.pt" and parts[-3] == "zoo":
+        return f"zoo:{parts[-2]}"
+    return None
 
 
 # Fields the report computes with, and what each must hold: a hand-edited "success": "yes" or a negative

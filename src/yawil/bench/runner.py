@@ -24,7 +24,7 @@ from yawil.bench.records import PROTOCOL, EpisodeLog, check_run_info, episode_ke
 from yawil.bench.suites import Episode
 from yawil.executor import ExecutorConfig, for_worker, open_executor
 from yawil.locking import folder_lock
-from yawil.policy.speed import check_stop_release, speed_control_mode
+from yawil.policy.speed import check_stop_creep, check_stop_release, speed_control_mode
 from yawil.sim.types import Control, Observation, World
 
 EXPERT = "expert"
@@ -57,6 +57,7 @@ class AgentSpec:
     device: str = "cpu"
     stop_release: float = 0.0  # s standing before the "stop" mode's lead-stop class is ignored (yawil.agent.StopRelease)
     engine: str = "auto"  # where a learned agent's network runs (yawil.policy.engine: auto, torch, openvino, onnxruntime)
+    stop_creep: float = 0.0  # m after which the release's creep ends (yawil.policy.drive.StopRelease; 0: its 2 s)
 
     @property
     def is_expert(self) -> bool:
@@ -82,6 +83,8 @@ class AgentSpec:
             opts["speed_control"] = True if mode == "target" else mode
         if self.stop_release:  # only when set, so the records of earlier runs still match
             opts["stop_release"] = float(self.stop_release)
+        if self.stop_creep:  # only when set, so the records of earlier runs still match
+            opts["stop_creep"] = float(self.stop_creep)
         if self.device != "cpu" and not self.is_expert:  # only when set, so the records of earlier runs still match
             opts["device"] = self.device
         if not self.is_expert:  # the engine and its precision change the numbers, so a resume must use the same
@@ -97,7 +100,7 @@ class AgentSpec:
             raise ValueError(f"--agent {self.agent!r}: expected 'expert', zoo:NAME or the path of a checkpoint file")
         if self.is_expert and (self.yaw_noise_deg or self.command_noise_p or self.speed_control):
             raise ValueError("noise and speed-control options apply to learned agents, not to the expert")
-        check_stop_release(self.stop_release, speed_control_mode(self.speed_control))  # before the checkpoint is read
+        check_stop_creep(self.stop_creep, check_stop_release(self.stop_release, speed_control_mode(self.speed_control)))
         if self.expert_args and not self.is_expert:
             raise ValueError("--expert-arg applies to --agent expert only")
         if self.device not in ("cpu", "cuda"):
@@ -135,20 +138,26 @@ class AgentSpec:
         return "-".join(resolve_engine(self.engine, runtime))
 
     def identity(self) -> str:
-        return EXPERT if self.is_expert else str(self.checkpoint.resolve())
+        """What records name the agent by: 'expert', `zoo:NAME` (the same on every machine; the weights' hash is
+        recorded beside it), or the checkpoint's absolute path."""
+        if self.is_expert or self.agent.startswith("zoo:"):
+            return self.agent
+        return str(self.checkpoint.resolve())
 
     def content_hash(self) -> str | None:
         """SHA-256 of the checkpoint file (None for the expert): a resume must drive the same weights, even
         when another checkpoint was written to the same path in between."""
         if self.is_expert or not self.checkpoint.is_file():  # the expert, or a custom agent_factory's name
             return None
-        import hashlib
+        from yawil.fileio import file_sha256
 
-        h = hashlib.sha256()
-        with open(self.checkpoint, "rb") as fh:
-            for block in iter(lambda: fh.read(1 << 20), b""):
-                h.update(block)
-        return h.hexdigest()
+        return file_sha256(self.checkpoint)
+
+    def drive(self) -> dict[str, Any]:
+        """The drive settings of a learned agent, as keyword options of `yawil.agent.Agent.from_checkpoint`."""
+        return {"speed_control": self.speed_control, "stop_release": self.stop_release, "stop_creep": self.stop_creep,
+                "yaw_noise_deg": self.yaw_noise_deg, "command_noise_p": self.command_noise_p,
+                "yaw_noise_mode": self.yaw_noise_mode, "command_noise_mode": self.command_noise_mode}
 
     def build(self, seed: int, slots: int = 1) -> DrivingAgent:
         """A fresh agent; learned agents get the episode's seed for their noise and `slots` episodes at once."""
@@ -159,25 +168,25 @@ class AgentSpec:
         from yawil.agent import Agent
 
         return Agent.from_checkpoint(  # type: ignore[no-any-return]
-            self.checkpoint, yaw_noise_deg=self.yaw_noise_deg, command_noise_p=self.command_noise_p, seed=seed,
-            speed_control=self.speed_control, stop_release=self.stop_release, yaw_noise_mode=self.yaw_noise_mode,
-            command_noise_mode=self.command_noise_mode, device=self.device, engine=self.engine, slots=slots,
-            attention=False,
+            self.checkpoint, seed=seed, device=self.device, engine=self.engine, slots=slots, attention=False,
+            **self.drive(),
         )
 
 
-def drive_options(args: Any) -> tuple[bool | str, float]:
-    """--speed-control and --stop-release as given; for a zoo model given neither, its card's `drive` (so that
-    `--agent zoo:NAME` drives as the card's figures were measured), said in one line."""
-    if args.speed_control or args.stop_release or not str(args.agent).startswith("zoo:"):
-        return args.speed_control, args.stop_release
-    from yawil.zoo import card_drive
+def drive_options(args: Any) -> dict[str, Any]:
+    """--speed-control, --stop-release and --stop-creep as given (keyword options of `AgentSpec`); for a zoo model
+    given none of them, its card's `drive` (so that `--agent zoo:NAME` drives as the card's figures were
+    measured), said in one line."""
+    given = {"speed_control": args.speed_control, "stop_release": args.stop_release,
+             "stop_creep": getattr(args, "stop_creep", 0.0)}
+    if any(given.values()) or not str(args.agent).startswith("zoo:"):
+        return given
+    from yawil.zoo import card_drive, drive_flags
 
-    mode, release = card_drive(args.agent)
-    if mode:
-        print(f"{args.agent}: driven as its card says: --speed-control {mode}" +
-              (f" --stop-release {release:g}" if release else ""))
-    return mode, release
+    drive = card_drive(args.agent)
+    if drive:
+        print(f"{args.agent}: driven as its card says: {drive_flags(drive)}")
+    return {**given, **drive}
 
 
 def agent_device(name: str) -> str:

@@ -84,7 +84,7 @@ def candidate_label(path: Path) -> str:
 def select_checkpoint(checkpoints: Sequence[Path], out: Path, routes: int = 3, workers: int = 1,
                       progress: bool = True, speed_control: bool | str = False,
                       stop_release: float = 0.0, engine: str = "auto",
-                      episodes_per_worker: int | None = None) -> dict[str, Any]:
+                      episodes_per_worker: int | None = None, stop_creep: float = 0.0) -> dict[str, Any]:
     """Drive every candidate on the validation set (resumable per episode), write OUT/selection.json."""
     from yawil.bench.records import read_records
     from yawil.bench.runner import AgentSpec, run_benchmark
@@ -100,7 +100,8 @@ def select_checkpoint(checkpoints: Sequence[Path], out: Path, routes: int = 3, w
     rows: list[dict[str, Any]] = []
     for path, label in zip(checkpoints, labels, strict=True):
         ck = load_checkpoint(path, map_location="cpu")
-        spec = AgentSpec(str(path), speed_control=speed_control, stop_release=stop_release, engine=engine).validate()
+        spec = AgentSpec(str(path), speed_control=speed_control, stop_release=stop_release, stop_creep=stop_creep,
+                         engine=engine).validate()
         run_benchmark(eps, spec, out / label, workers=workers, progress=progress, label=label,
                       episodes_per_worker=episodes_per_worker)
         recs = read_records(out / label / "episodes.jsonl")
@@ -132,6 +133,8 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     add_speed_control_arguments(p, "as yawil bench: ")
     add_engine_arguments(p, batched=True)
     p.add_argument("--link", default=None, help="also make this path a hard link of the selected checkpoint")
+    p.add_argument("--force", action="store_true", help="let --link replace an existing file (never one inside a "
+                   "dataset, run, results or zoo folder)")
     p.add_argument("--no-progress", action="store_true")
     return p
 
@@ -142,8 +145,13 @@ def run(args: argparse.Namespace) -> int:
         for p in paths:
             if not p.is_file():
                 raise ValueError(f"{p}: no such checkpoint file")
+        if args.link:
+            from yawil.fileio import check_output_file
+
+            check_output_file(args.link, "--link", args.force)  # before any candidate is driven
         result = select_checkpoint(paths, Path(args.out), args.routes, args.workers, not args.no_progress,
-                                   args.speed_control, args.stop_release, args.engine, args.episodes_per_worker)
+                                   args.speed_control, args.stop_release, args.engine, args.episodes_per_worker,
+                                   args.stop_creep)
         if args.link:
             from yawil.learn.artifacts import link_or_copy
 

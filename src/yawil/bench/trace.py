@@ -118,6 +118,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("episode", help="the record key task/condition/weather/route/seed, e.g. regular/training/WetNoon/1/0")
     p.add_argument("--agent", required=True, help="a checkpoint, zoo:NAME, or 'expert' (the expert shadowing itself)")
     p.add_argument("--out", required=True, help="the CSV file to write")
+    p.add_argument("--force", action="store_true", help="replace an existing output file (never one inside a dataset, run, results or zoo folder)")
     p.add_argument("--suite", default="all", help="the suite the episode belongs to (default all)")
     add_speed_control_arguments(p, "as yawil bench: ")
     add_engine_arguments(p)
@@ -131,9 +132,11 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace) -> int:
+    from yawil.fileio import check_output_file
+
+    check_output_file(args.out, "--out", args.force)  # before the episode is driven
     expert_args = tuple(args.expert_arg)
-    speed_control, stop_release = drive_options(args)
-    spec = AgentSpec(args.agent, speed_control=speed_control, stop_release=stop_release,
+    spec = AgentSpec(args.agent, **drive_options(args),
                      expert_args=expert_args if args.agent == "expert" else (),
                      device=agent_device(args.device), engine=args.engine).validate()
     ep = find_episode(args.episode, args.suite)

@@ -34,6 +34,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     )
     s.add_argument("dirs", nargs="+", metavar="DIR", help="dataset root(s), described together")
     s.add_argument("--out", default=None, metavar="PNG", help="figure to write (default: DIR/stats.png of the first DIR)")
+    s.add_argument("--force", action="store_true", help="replace an existing output file (never one inside a dataset, run, results or zoo folder)")
     u = sub.add_parser(
         "subset",
         help="write a subset of the square experiment as a new dataset",
@@ -79,7 +80,9 @@ def _stats(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from yawil.data.stats import write_stats
+    from yawil.fileio import check_output_file
 
     out = Path(args.out) if args.out else Path(args.dirs[0]) / "stats.png"
+    check_output_file(out, "--out", args.force, own=("stats.png",))
     print(f"wrote {write_stats(args.dirs, out)}")
     return 0

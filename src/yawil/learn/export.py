@@ -33,6 +33,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     )  # fmt: skip
     p.add_argument("checkpoint", help="a yawil checkpoint (best.pt / last.pt) or zoo:NAME")
     p.add_argument("--onnx", required=True, metavar="OUT", help="ONNX file to write")
+    p.add_argument("--force", action="store_true", help="replace an existing output file (never one inside a dataset, run, results or zoo folder)")
     p.add_argument("--opset", type=int, default=OPSET, help=f"ONNX opset (>= 17, default {OPSET})")
     p.add_argument("--check", action="store_true", help="compare onnxruntime with torch on a random batch")
     p.add_argument("--batch", type=int, default=4, help="batch size of the --check comparison (default 4)")
@@ -124,8 +125,7 @@ def _drive(checkpoint: str) -> dict[str, Any]:
 
     settings = DriveSettings()
     if checkpoint.startswith(PREFIX):
-        mode, release = card_drive(checkpoint)
-        settings = DriveSettings(speed_control=mode or None, stop_release=release)
+        settings = DriveSettings.from_options(card_drive(checkpoint))
     return {**asdict(settings), "reference": "yawil.policy.drive (decide, PostProcess); docs/training.md"}
 
 
@@ -172,9 +172,16 @@ def check_onnx(checkpoint: str | Path, onnx_path: str | Path, batch: int = 4, se
 
 
 def run(args: argparse.Namespace) -> int:
+    from yawil.fileio import check_output_file
+
     final = Path(args.onnx)
-    if final.is_dir():
-        print(f"yawil export: --onnx {final} is a folder; expected the path of the .onnx file to write", file=sys.stderr)
+    if args.batch < 1:
+        print(f"yawil export: --batch {args.batch}: expected a batch size >= 1", file=sys.stderr)
+        return 2
+    try:
+        check_output_file(final, "--onnx", args.force)
+    except ValueError as err:
+        print(f"yawil export: {err}", file=sys.stderr)
         return 2
     # with --check the graph is checked under a temporary name and takes its place only if it passes
     target = final.with_name(f".{final.name}.unchecked") if args.check else final

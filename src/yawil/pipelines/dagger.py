@@ -33,6 +33,7 @@ from yawil.guidance import REFERENCES, GuidanceConfig
 from yawil.policy.speed import (
     SPEED_CONTROLS,
     add_speed_control_arguments,
+    check_stop_creep,
     check_stop_release,
     speed_control_mode,
 )
@@ -79,6 +80,7 @@ class DaggerConfig:
     # the learner drives throttle and brake from its aux head (as benched): True/"target", "lead" or "stop"
     speed_control: bool | str = False
     stop_release: float = 0.0  # s: the learner's "stop" release, as `yawil bench --stop-release`
+    stop_creep: float = 0.0  # m: the release's creep length, as `yawil bench --stop-creep`
     expert_args: dict[str, float] = field(default_factory=dict)  # ExpertConfig settings of the expert (labels, takeovers)
     # the yaw guidance's reference when round 0's data is collected here; rounds always take the expert data's
     guidance_reference: str = GuidanceConfig.reference
@@ -107,6 +109,10 @@ class DaggerConfig:
             check_stop_release(self.stop_release, mode)
         except ValueError:
             need(False, "stop_release", "seconds >= 0, > 0 only with speed_control 'stop'")
+        try:
+            check_stop_creep(self.stop_creep, self.stop_release)
+        except ValueError:
+            need(False, "stop_creep", "metres >= 0, > 0 only with a stop_release")
         need(isinstance(self.expert_args, dict), "expert_args", "a mapping of ExpertConfig settings")
         need(self.guidance_reference in REFERENCES, "guidance_reference", f"one of {', '.join(REFERENCES)}")
         need(self.expert_data is None or self.guidance_reference == GuidanceConfig.reference, "guidance_reference",
@@ -139,7 +145,7 @@ def _is_int(v: Any) -> bool:
 
 
 def load_learner(checkpoint: str, threads: int = 1, speed_control: bool | str = False,
-                 stop_release: float = 0.0) -> Any:
+                 stop_release: float = 0.0, stop_creep: float = 0.0) -> Any:
     """The learner of a collection process: the checkpoint's agent on the CPU, with `threads` torch threads,
     driving as it will be benchmarked (`speed_control`: throttle and brake from its target speed), so that the
     states it visits are the ones the benchmark will see."""
@@ -148,7 +154,8 @@ def load_learner(checkpoint: str, threads: int = 1, speed_control: bool | str = 
     from yawil.agent import Agent
 
     torch.set_num_threads(threads)
-    return Agent.from_checkpoint(checkpoint, device="cpu", speed_control=speed_control, stop_release=stop_release)
+    return Agent.from_checkpoint(checkpoint, device="cpu", speed_control=speed_control, stop_release=stop_release,
+                                 stop_creep=stop_creep)
 
 
 # ------------------------------------------------------------------------------------------------- loop
@@ -252,7 +259,8 @@ class DaggerRun:
         onpolicy = OnPolicy(round=r, beta=cfg.beta_of(r), segment_seconds=cfg.segment_seconds,
                             takeover_lateral=cfg.takeover_lateral, takeover_decel=cfg.takeover_decel,
                             takeover_stall=cfg.takeover_stall, takeover_seconds=cfg.takeover_seconds)
-        learner = Learner(factory=functools.partial(load_learner, str(policy), 1, cfg.speed_control, cfg.stop_release), onpolicy=onpolicy,
+        learner = Learner(factory=functools.partial(load_learner, str(policy), 1, cfg.speed_control, cfg.stop_release,
+                                                            cfg.stop_creep), onpolicy=onpolicy,
                           identity=str(policy.resolve()), min_world_seed=BENCH_WORLD_SEED_LIMIT,
                           reject_route=BenchmarkRoutes(cfg.town))
         # No steering noise (the learner makes its own mistakes); the second before a collision is not a label.
@@ -373,7 +381,7 @@ def run(args: argparse.Namespace) -> int:
             lr=args.lr, round_lr=args.round_lr, workers=args.workers, executor=executor_from_args(args).kind, ray_address=args.ray_address,
             threads=args.threads, train_args=_train_args(args.train_arg),
             round0=args.round0, expert_data=args.expert_data, speed_control=args.speed_control,
-            stop_release=args.stop_release,
+            stop_release=args.stop_release, stop_creep=args.stop_creep,
             expert_args=_expert_args(args.expert_arg), guidance_reference=args.guidance_reference,
         )
         from yawil.learn.config import TrainConfig

@@ -164,8 +164,7 @@ def zoo_spec(name: str) -> Any:
     from yawil.bench.runner import AgentSpec
     from yawil.zoo import card_drive
 
-    mode, release = card_drive(f"zoo:{name}")
-    return AgentSpec(f"zoo:{name}", speed_control=mode, stop_release=release)
+    return AgentSpec(f"zoo:{name}", **card_drive(f"zoo:{name}"))
 
 
 def run_demo(out: Path, budget: DemoBudget, seed: int = 0) -> Path:
@@ -242,8 +241,7 @@ def run_demo(out: Path, budget: DemoBudget, seed: int = 0) -> Path:
         t = time.perf_counter()
         _say(f"4/5 attention heat maps of zoo:{budget.zoo_model} on dataset frames and one town02 episode video")
         spec = zoo_spec(budget.zoo_model)
-        agent = Agent.from_checkpoint(f"zoo:{budget.zoo_model}", speed_control=spec.speed_control,
-                                      stop_release=spec.stop_release)
+        agent = Agent.from_checkpoint(f"zoo:{budget.zoo_model}", **spec.drive())
         explain_frames(agent, data, out / "explain", budget.explain_frames, seed, 0.5)
         episode = EpisodeVideo(route="one_turn:0", condition="new-town-weather", town="town02",
                                weather="SoftRainSunset", vehicles=0, pedestrians=0, seed=seed,

@@ -148,11 +148,25 @@ def cpu_state_dict(model: torch.nn.Module) -> dict[str, torch.Tensor]:
     return {k: v.detach().cpu().clone() for k, v in model.state_dict().items()}
 
 
+def weights_digest(state_dict: dict[str, torch.Tensor]) -> str:
+    """SHA-256 over the weights' names, dtypes, shapes and bytes: stored in every checkpoint and checked on load,
+    so that a damaged file (flipped bytes load fine and drive nonsense) is named instead of driven."""
+    import hashlib
+
+    h = hashlib.sha256()
+    for name in sorted(state_dict):
+        t = state_dict[name].detach().cpu().contiguous()
+        h.update(f"{name}:{t.dtype}:{tuple(t.shape)};".encode())
+        h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes())
+    return h.hexdigest()
+
+
 def save_checkpoint(ckpt: dict[str, Any], path: str | os.PathLike[str]) -> Path:
-    """Save atomically: a temporary file in the same folder, then a rename."""
+    """Save atomically (a temporary file in the same folder, then a rename), with the weights' digest."""
     missing = [k for k in REQUIRED_KEYS if k not in ckpt]
     if missing:
         raise ValueError(f"refusing to save a checkpoint without {missing}")
+    ckpt = {**ckpt, "weights_sha256": weights_digest(ckpt["state_dict"])}
     path = Path(path)
     with atomic_file(path) as f:
         try:
@@ -191,6 +205,10 @@ def load_checkpoint(path: str | os.PathLike[str], map_location: str | torch.devi
     if missing:
         raise ValueError(f"{path} is a yawil checkpoint but lacks the key(s) {missing}")
     Norm.from_dict(ckpt["norm"])  # validates the nested keys
+    want = ckpt.get("weights_sha256")  # checkpoints written before the digest was stored have none
+    if want is not None and weights_digest(ckpt["state_dict"]) != want:
+        raise ValueError(f"{path}: its weights do not match the SHA-256 stored with them: the file is damaged "
+                         "(retrain, or restore it from a copy)")
     return ckpt
 
 

@@ -22,7 +22,7 @@ from yawil.data.schema import LEAD_RANGE
 from yawil.expert import ExpertConfig, hazard_speed
 from yawil.guidance import COMMAND_NOISE_MODES, YAW_NOISE_MODES, CommandNoise
 from yawil.models.base import AUX_NAMES, LEAD_STOP_FIRES
-from yawil.policy.speed import check_stop_release, speed_control_mode
+from yawil.policy.speed import check_stop_creep, check_stop_release, speed_control_mode
 from yawil.sim.types import DT, Control
 
 
@@ -119,21 +119,28 @@ class StopRelease:
 
     patience: float
     creep: float = STOP_CREEP
+    creep_distance: float = 0.0  # m: the creep also ends once the car has moved this far (0: time only)
     dt: float = DT
     stood: int = 0  # steps standing held by the class alone
     creep_left: int = 0  # steps of the creep still to drive
+    moved: float = 0.0  # m driven in the current creep
 
     def reset(self) -> None:
         self.stood = self.creep_left = 0
+        self.moved = 0.0
 
     def released(self, speed: float, holding: bool) -> bool:
         """One step: whether the class is ignored now. `holding`: it fires while the head would drive."""
         if self.creep_left > 0:
-            self.creep_left -= 1
-            return True
+            self.moved += max(0.0, speed) * self.dt
+            if self.creep_distance > 0 and self.moved >= self.creep_distance:
+                self.creep_left = 0  # moved enough for a new picture: the class is armed again from this step
+            else:
+                self.creep_left -= 1
+                return True
         self.stood = self.stood + 1 if (holding and speed < STANDING) else 0
         if self.stood >= round(self.patience / self.dt):
-            self.stood, self.creep_left = 0, round(self.creep / self.dt) - 1
+            self.stood, self.creep_left, self.moved = 0, round(self.creep / self.dt) - 1, 0.0
             return True
         return False
 
@@ -168,13 +175,14 @@ class DriveSettings:
     """How a trained model is driven: the one place these settings are named and checked.
 
     `speed_control`: None (the network's throttle and brake), "target", "lead" or "stop" (`yawil.policy.speed`);
-    `stop_release`: seconds (with "stop"); `yaw_noise_deg` / `command_noise_p` with their readings (Table II,
+    `stop_release`: seconds (with "stop"); `stop_creep`: metres after which a release's creep ends (0: its 2 s); `yaw_noise_deg` / `command_noise_p` with their readings (Table II,
     `yawil.guidance`); `post`: the clipping rules. A zoo model's card names the settings its figures were
     measured with (`card.json` "drive"), and `yawil.agent.Agent.from_checkpoint("zoo:NAME")` uses them.
     """
 
     speed_control: str | None = None
     stop_release: float = 0.0
+    stop_creep: float = 0.0
     yaw_noise_deg: float = 0.0
     command_noise_p: float = 0.0
     yaw_noise_mode: str = "raw"
@@ -184,6 +192,7 @@ class DriveSettings:
     def __post_init__(self) -> None:
         object.__setattr__(self, "speed_control", speed_control_mode(self.speed_control))  # True -> "target"
         object.__setattr__(self, "stop_release", check_stop_release(self.stop_release, self.speed_control))
+        object.__setattr__(self, "stop_creep", check_stop_creep(self.stop_creep, self.stop_release))
         if isinstance(self.yaw_noise_deg, bool) or not float(self.yaw_noise_deg) >= 0.0:
             raise ValueError(f"yaw_noise_deg={self.yaw_noise_deg!r}: expected >= 0 degrees")
         if isinstance(self.command_noise_p, bool) or not 0.0 <= float(self.command_noise_p) <= 1.0:
@@ -229,7 +238,7 @@ class DriveSettings:
     def as_dict(self) -> dict[str, Any]:
         """The settings that differ from the defaults, by name (a card's "drive", a record's options)."""
         out: dict[str, Any] = {}
-        for name in ("speed_control", "stop_release", "yaw_noise_deg", "command_noise_p"):
+        for name in ("speed_control", "stop_release", "stop_creep", "yaw_noise_deg", "command_noise_p"):
             if getattr(self, name):
                 out[name] = getattr(self, name)
         if self.yaw_noise_deg:
@@ -246,7 +255,7 @@ class DriveSettings:
             command_noise=CommandNoise(self.command_noise_p, rng, mode=self.command_noise_mode)
             if self.command_noise_p > 0 else None,
             speed_control=SpeedControl() if self.speed_control is not None else None,
-            stop_release=StopRelease(self.stop_release) if self.stop_release else None,
+            stop_release=StopRelease(self.stop_release, creep_distance=self.stop_creep) if self.stop_release else None,
         )
 
     def command(self, option: int, state: EpisodeState) -> int:

@@ -38,6 +38,15 @@ def check_stop_release(seconds: float, mode: str | None) -> float:
     return float(seconds)
 
 
+def check_stop_creep(metres: float, release: float) -> float:
+    """`stop_creep` as a float, refused in one line unless >= 0 m and (when > 0) with a stop release."""
+    if isinstance(metres, bool) or not isinstance(metres, (int, float)) or not (math.isfinite(metres) and metres >= 0):
+        raise ValueError(f"stop_creep={metres!r}: expected metres >= 0 (0: the creep lasts its 2 s)")
+    if metres and not release:
+        raise ValueError(f"stop_creep={metres!r} applies to a stop release (--stop-release SECONDS > 0)")
+    return float(metres)
+
+
 def add_speed_control_arguments(p: argparse.ArgumentParser, what: str = "") -> None:
     """--speed-control and --stop-release, the same on bench, trace, select and dagger."""
     p.add_argument("--speed-control", nargs="?", const="target", default=False, choices=SPEED_CONTROLS,
@@ -48,6 +57,9 @@ def add_speed_control_arguments(p: argparse.ArgumentParser, what: str = "") -> N
     p.add_argument("--stop-release", type=float, default=0.0, metavar="SECONDS",
                    help="with --speed-control stop: after this many seconds standing with the lead-stop output the "
                         "only reason, ignore it for a 2 s creep (default 0: never)")
+    p.add_argument("--stop-creep", type=float, default=0.0, metavar="METRES",
+                   help="with --stop-release: the creep also ends, and the lead-stop output counts again, once the car "
+                        "has moved this far (default 0: the creep lasts its 2 s)")
 
 
 def add_engine_arguments(p: argparse.ArgumentParser, batched: bool = False) -> None:

@@ -44,9 +44,21 @@ def zoo_dir(name: str, root: Path | None = None) -> Path:
 
 
 def resolve_checkpoint(arg: str | os.PathLike[str]) -> Path:
-    """A checkpoint path, or `zoo:NAME` -> that zoo model's weights file."""
+    """A checkpoint path, or `zoo:NAME` -> that zoo model's weights file, checked against its card's SHA-256."""
     s = str(arg)
-    return zoo_dir(s[len(PREFIX):]) / WEIGHTS if s.startswith(PREFIX) else Path(s)
+    if not s.startswith(PREFIX):
+        return Path(s)
+    name = s[len(PREFIX):]
+    path = zoo_dir(name) / WEIGHTS
+    want = read_card(name).get("weights_sha256")
+    if want is None:
+        raise ValueError(f"{path.parent / CARD}: no weights_sha256; a zoo card names its weights' hash")
+    from yawil.fileio import file_sha256
+
+    if file_sha256(path) != want:
+        raise ValueError(f"{path}: its SHA-256 differs from its card's weights_sha256: the file is damaged or was "
+                         "replaced without `yawil zoo pack` (restore it, e.g. git checkout)")
+    return path
 
 
 def read_card(name: str, root: Path | None = None) -> dict[str, Any]:
@@ -60,12 +72,19 @@ def read_card(name: str, root: Path | None = None) -> dict[str, Any]:
     return card
 
 
-def card_drive(agent: str) -> tuple[bool | str, float]:
-    """How a zoo model's card says it is driven (`drive`: speed_control, stop_release); (False, 0) otherwise."""
+DRIVE_KEYS = ("speed_control", "stop_release", "stop_creep")  # what a card's "drive" may name
+
+
+def card_drive(agent: str) -> dict[str, Any]:
+    """How a zoo model's card says it is driven (`drive`: speed_control, stop_release, stop_creep, as keyword
+    options of `yawil.policy.drive.DriveSettings`); {} for anything else. An unknown key is refused in one line."""
     if not agent.startswith(PREFIX):
-        return False, 0.0
+        return {}
     drive = read_card(agent[len(PREFIX):]).get("drive") or {}
-    return drive.get("speed_control", False), float(drive.get("stop_release", 0.0))
+    unknown = sorted(set(drive) - set(DRIVE_KEYS))
+    if unknown:
+        raise ValueError(f"{agent}: card.json drive names {', '.join(unknown)}; expected {', '.join(DRIVE_KEYS)}")
+    return dict(drive)
 
 
 def drive_flags(drive: dict[str, Any]) -> str:

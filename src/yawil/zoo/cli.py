@@ -2,9 +2,11 @@
 
     yawil zoo list                                   # = yawil models --zoo
     yawil zoo check [NAME ...]                       # each model's outputs on its probe frames vs its card
-    yawil zoo pack CKPT --name NAME --data DATA --card CARD.json   # add or replace a zoo model
+    yawil zoo pack CKPT --name NAME --data DATA --card CARD.json [--out FOLDER] [--force]
 
-`pack` stores the checkpoint compactly (bf16, without weights no output uses), draws probe frames from DATA
+`pack` writes FOLDER/NAME (default FOLDER: ./zoo; to ship a model with yawil, --out src/yawil/zoo); a model of
+that name is replaced only with --force, and only once the new one is complete. It checks the card's fields and
+`drive`, and the dataset as `yawil data check --no-images` does, before any work. It stores the checkpoint compactly (bf16, without weights no output uses), draws probe frames from DATA
 and writes the card: CARD.json's fields (commands, commit, data, wall time, machine, results, `drive`) plus
 what pack measures (probe outputs, stored parameters).
 """
@@ -25,6 +27,9 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--data", help="pack: the dataset the probe frames are drawn from")
     p.add_argument("--card", help="pack: a JSON file of the card's fields")
     p.add_argument("--frames", type=int, default=8, help="pack: probe frames (default 8)")
+    p.add_argument("--out", default="zoo", help="pack: the zoo folder to write NAME into (default ./zoo; the "
+                   "shipped zoo is src/yawil/zoo)")
+    p.add_argument("--force", action="store_true", help="pack: replace a model of the same name")
     return p
 
 
@@ -48,8 +53,9 @@ def run(args: argparse.Namespace) -> int:
         card = json.loads(Path(args.card).read_text())
     except (OSError, json.JSONDecodeError) as err:
         raise ValueError(f"--card {args.card}: not a readable JSON file ({err})") from None
-    if not isinstance(card, dict):
-        raise ValueError(f"--card {args.card}: expected a JSON object")
-    folder = pack.pack(args.names[0], args.name, Path(args.data), card, count=args.frames)
+    if args.frames < 1:
+        raise ValueError(f"--frames {args.frames}: expected >= 1")
+    folder = pack.pack(args.names[0], args.name, Path(args.data), pack.check_card(card, f"--card {args.card}"),
+                       root=Path(args.out), count=args.frames, force=args.force)
     print(f"zoo:{args.name} -> {folder} ({sum(f.stat().st_size for f in folder.iterdir()) / 2**20:.1f} MiB)")
     return 0

@@ -101,20 +101,83 @@ def read_probe(folder: Path) -> dict[str, np.ndarray]:
         return {k: z[k] for k in ("image", "speed", "guidance", "command")}
 
 
+# The fields a card given to `pack` may hold (written by whoever trained the model); pack adds the rest.
+CARD_FIELDS = ("summary", "commands", "commit", "data", "made_by", "machine", "wall_s", "steps_total", "steps_note",
+               "validation", "selection", "eval100", "demo", "results", "drive")
+PACKED_FIELDS = ("name", "model_name", "model_config", "step", "omitted", "weights", "parameters_stored", "probe",
+                 "weights_sha256")
+
+
+def check_card(card: Any, where: str) -> dict[str, Any]:
+    """A card's own fields, refused in one line if one is unknown (a typo would vanish silently), one is pack's
+    to write, or its `drive` is not a valid way of driving."""
+    from yawil.policy.drive import DriveSettings
+    from yawil.zoo import DRIVE_KEYS
+
+    if not isinstance(card, dict):
+        raise ValueError(f"{where}: expected a JSON object")
+    ours = sorted(set(card) & set(PACKED_FIELDS))
+    if ours:
+        raise ValueError(f"{where}: {', '.join(ours)} are written by yawil zoo pack; leave them out")
+    unknown = sorted(set(card) - set(CARD_FIELDS))
+    if unknown:
+        raise ValueError(f"{where}: unknown field(s) {', '.join(unknown)}; a card holds {', '.join(CARD_FIELDS)}")
+    drive = card.get("drive") or {}
+    if not isinstance(drive, dict) or set(drive) - set(DRIVE_KEYS):
+        raise ValueError(f"{where}: drive must be an object of {', '.join(DRIVE_KEYS)}, got {drive!r}")
+    try:
+        DriveSettings.from_options(drive)
+    except ValueError as err:
+        raise ValueError(f"{where}: drive: {err}") from None
+    return card
+
+
 def pack(checkpoint: str | Path, name: str, data: Path, card: dict[str, Any], root: Path | None = None,
-         count: int = 8) -> Path:
-    """Write zoo model `name` from a training checkpoint: compact weights, probe frames, the card with the probe's
-    outputs and the largest difference of the compact model from the checkpoint on them."""
-    from yawil.fileio import atomic_path
+         count: int = 8, force: bool = False) -> Path:
+    """Write zoo model `name` into `root` (default: the shipped zoo) from a training checkpoint: compact weights,
+    probe frames, the card with the probe's outputs, the largest difference of the compact model from the
+    checkpoint on them and the weights' SHA-256. Everything is checked first (name, card, dataset, an existing
+    model of that name needs `force`); the model is built in a temporary folder and takes its place whole."""
+    import os
+    import shutil
+
+    from yawil.data.check import check_dataset
 
     if not name or "/" in name or name.startswith("."):
         raise ValueError(f"--name {name!r}: expected a plain folder name")
+    check_card(card, "--card")
+    root = root or ZOO_DIR
+    final = root / name
+    if final.exists() and not force:
+        raise ValueError(f"{final}: a zoo model of that name exists; give --force to replace it (or another --name)")
+    report = check_dataset(data, images=False)
+    if not report.ok:
+        raise ValueError(f"--data {data}: fails yawil data check: " + "; ".join(report.lines()[-3:]))
     ckpt = load_checkpoint(checkpoint)
     full_agent = probe_agent(checkpoint)
     probe = sample_probe(Path(data), full_agent.kind, count)
     omitted = unused_modules(full_agent.model, probe_inputs(full_agent, probe, 0).as_dict())
-    folder = (root or ZOO_DIR) / name
-    folder.mkdir(parents=True, exist_ok=True)
+    folder = root / f".{name}.packing-{os.getpid()}"
+    shutil.rmtree(folder, ignore_errors=True)
+    folder.mkdir(parents=True)
+    try:
+        _write(ckpt, omitted, probe, full_agent, card, name, folder)
+        if final.exists():  # --force: the old model leaves only once the new one is complete
+            old = root / f".{name}.replaced-{os.getpid()}"
+            os.replace(final, old)
+            os.replace(folder, final)
+            shutil.rmtree(old)
+        else:
+            os.replace(folder, final)
+    finally:
+        shutil.rmtree(folder, ignore_errors=True)
+    return final
+
+
+def _write(ckpt: dict[str, Any], omitted: list[str], probe: dict[str, np.ndarray], full_agent: Any,
+           card: dict[str, Any], name: str, folder: Path) -> None:
+    from yawil.fileio import atomic_path, file_sha256
+
     compact = compact_checkpoint(ckpt, omitted)
     save_checkpoint(compact, folder / WEIGHTS)
     with atomic_path(folder / PROBE) as tmp:
@@ -126,9 +189,9 @@ def pack(checkpoint: str | Path, name: str, data: Path, card: dict[str, Any], ro
     card = {**card, "name": name, "model_name": ckpt["model_name"], "model_config": ckpt["model_config"],
             "step": ckpt["step"], "omitted": omitted, "weights": "bfloat16",
             "parameters_stored": sum(v.numel() for v in compact["state_dict"].values()),
-            "probe": {**packed, "bf16_max_diff_from_fp32": round(drift, 6)}}
+            "probe": {**packed, "bf16_max_diff_from_fp32": round(drift, 6)},
+            "weights_sha256": file_sha256(folder / WEIGHTS)}
     write_json_atomic(folder / CARD, card)
-    return folder
 
 
 def check_zoo_model(name: str, root: Path | None = None) -> float:

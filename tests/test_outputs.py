@@ -1,0 +1,85 @@
+"""One output rule for every file option: a file that exists is replaced only with --force, and a file inside a
+folder that a yawil stage owns (a dataset, a run, a results folder, a zoo model) never; the refusal comes before
+any work, in one line naming the file, and the file keeps its bytes."""
+
+from __future__ import annotations
+
+import contextlib
+import io
+import time
+from pathlib import Path
+
+import pytest
+
+from yawil.cli import main
+from yawil.fileio import check_output_file, owning_folder
+
+
+@pytest.fixture
+def tree(tmp_path: Path) -> Path:
+    data = tmp_path / "data"
+    data.mkdir()
+    (data / "manifest.json").write_text('{"episodes": []}')
+    (data / "ep_000000.h5").write_bytes(b"episode")
+    run = tmp_path / "run"
+    (run / "sub").mkdir(parents=True)
+    (run / ".yawil.lock").write_text("")
+    for name in ("best.pt", "last.pt"):
+        (run / name).write_bytes(b"weights")
+    (tmp_path / "mine.csv").write_text("a user's file")
+    return tmp_path
+
+
+def _run(argv: list[str]) -> tuple[int, list[str]]:
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+        try:
+            rc = main(argv)
+        except SystemExit as exit_:
+            rc = exit_.code if isinstance(exit_.code, int) else 1
+            if not isinstance(exit_.code, int):
+                err.write(str(exit_.code))
+    return rc, [line for line in err.getvalue().splitlines() if line.strip()]
+
+
+# (argv with {t}, the file that must keep its bytes, text of the one line)
+CASES = [
+    (["data", "stats", "{t}/data", "--out", "{t}/data/manifest.json"], "data/manifest.json", "bookkeeping"),
+    (["data", "stats", "{t}/data", "--out", "{t}/data/ep_000000.h5", "--force"], "data/ep_000000.h5", "inside"),
+    (["data", "stats", "{t}/data", "--out", "{t}/mine.csv"], "mine.csv", "--force"),
+    (["export", "{t}/run/best.pt", "--onnx", "{t}/run/best.pt", "--force"], "run/best.pt", "inside"),
+    (["export", "{t}/run/best.pt", "--onnx", "{t}/mine.csv"], "mine.csv", "--force"),
+    (["trace", "straight/training/ClearNoon/0/0", "--agent", "expert", "--out", "{t}/run/last.pt"], "run/last.pt",
+     "inside"),
+    (["trace", "straight/training/ClearNoon/0/0", "--agent", "expert", "--out", "{t}/mine.csv"], "mine.csv",
+     "--force"),
+    (["select", "{t}/run/best.pt", "--out", "{t}/sel", "--link", "{t}/run/sub/../last.pt", "--force"], "run/last.pt",
+     "inside"),
+]
+
+
+@pytest.mark.parametrize("argv, kept, text", CASES, ids=[" ".join(c[0][:2]) + f" {i}" for i, c in enumerate(CASES)])
+def test_a_file_option_never_replaces_a_file_it_did_not_make(tree: Path, argv: list[str], kept: str,
+                                                              text: str) -> None:
+    before = (tree / kept).read_bytes()
+    t0 = time.perf_counter()
+    rc, lines = _run([a.replace("{t}", str(tree)) for a in argv])
+    assert rc == 2 and len(lines) == 1 and text in lines[0], lines
+    assert kept.split("/")[-1] in lines[0]
+    assert (tree / kept).read_bytes() == before
+    assert time.perf_counter() - t0 < 5.0  # refused before any work
+    assert not (tree / "sel").exists()
+
+
+def test_the_rule_itself(tree: Path) -> None:
+    assert owning_folder(tree / "data" / "x.png") == tree / "data"
+    assert owning_folder(tree / "run" / "sub" / "x.png") == tree / "run"  # a folder inside a run is the run's
+    assert owning_folder(tree / "mine.csv") is None
+    assert check_output_file(tree / "data" / "stats.png", "--out") == tree / "data" / "stats.png"  # a new file
+    (tree / "data" / "stats.png").write_bytes(b"png")
+    check_output_file(tree / "data" / "stats.png", "--out", own=("stats.png",))  # the command's own product
+    with pytest.raises(ValueError, match="inside"):
+        check_output_file(tree / "data" / "stats.png", "--out", force=True)
+    assert check_output_file(tree / "mine.csv", "--out", force=True) == tree / "mine.csv"
+    with pytest.raises(ValueError, match="is a folder"):
+        check_output_file(tree / "run", "--out", force=True)

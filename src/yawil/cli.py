@@ -59,14 +59,37 @@ def _version() -> str:
     return __version__
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM or SIGHUP, raised in the main thread so that it unwinds as Ctrl-C does: worker processes are
+    ended, files are left whole and folder locks are held until the last worker is gone. A batch scheduler
+    stops a job with SIGTERM; without this the main process died at once and its workers ran on."""
+
+    def __init__(self, signum: int) -> None:
+        super().__init__(signum)
+        self.signum = signum
+
+
+def _raise_terminated(signum: int, frame: object) -> None:
+    raise Terminated(signum)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
+    import signal
+    import threading
+
     parser = build_parser()
     args = parser.parse_args(argv)
     if not getattr(args, "_run", None):
         parser.print_help()
         return 2
+    previous = {}
+    if threading.current_thread() is threading.main_thread():  # handlers can only be set there
+        previous = {sig: signal.signal(sig, _raise_terminated) for sig in (signal.SIGTERM, signal.SIGHUP)}
     try:
         return int(args._run(args) or 0)
+    except Terminated as sig:
+        print(f"terminated ({signal.Signals(sig.signum).name})", file=sys.stderr)
+        return 128 + sig.signum
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130
@@ -76,6 +99,9 @@ def main(argv: Sequence[str] | None = None) -> int:
             raise
         print(f"yawil {args.command}: {err}", file=sys.stderr)
         return 2
+    finally:
+        for sig, handler in previous.items():
+            signal.signal(sig, handler)
 
 
 if __name__ == "__main__":

@@ -216,6 +216,40 @@ def test_a_signal_stops_between_steps_and_resume_is_exact(tmp_path: Path, monkey
         assert torch.equal(a[key], b[key]), key
 
 
+def test_an_interrupt_s_validation_does_not_choose_best(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """The validation run at a Ctrl-C is recorded (`interrupted`) but never chooses best.pt: here it scores
+    best of all, and the resumed run's best.pt is still the uninterrupted run's (step 4, not step 3)."""
+    import yawil.learn.loop as train_module
+
+    real_validate, real_step = train_module.validate, train_module.prepare_batch
+    calls = {"validate": 0, "batch": 0}
+
+    def validate(*args: Any, **kwargs: Any) -> dict[str, float]:
+        calls["validate"] += 1  # in the interrupted run, the first call is the interrupt's
+        return {**real_validate(*args, **kwargs), "val_loss": 0.1 if calls["validate"] == 1 else 0.5}
+
+    monkeypatch.setattr(train_module, "validate", validate)
+    full = train(small(tmp_path, "full", epochs=1), splits=splits(64))
+    calls["validate"] = 0
+
+    def signal_on_third_batch(*args: Any, **kwargs: Any) -> Any:
+        calls["batch"] += 1
+        if calls["batch"] == 3:
+            os.kill(os.getpid(), signal.SIGINT)
+        return real_step(*args, **kwargs)
+
+    monkeypatch.setattr(train_module, "prepare_batch", signal_on_third_batch)
+    with pytest.raises(KeyboardInterrupt):
+        train(small(tmp_path, "i", epochs=1), splits=splits(64))
+    assert not (tmp_path / "i" / "best.pt").exists()  # no scheduled validation has run yet
+    monkeypatch.setattr(train_module, "prepare_batch", real_step)
+    train(small(tmp_path, "i", epochs=1), resume=True, splits=splits(64))
+    best = load_checkpoint(tmp_path / "i" / "best.pt")
+    assert best["step"] == 4 and [m.get("interrupted") for m in best["metrics"]] == [1.0, None]
+    a, b = _weights(Path(full.out) / "best.pt"), _weights(tmp_path / "i" / "best.pt")
+    assert all(torch.equal(a[k], b[k]) for k in a)
+
+
 def test_an_unreadable_batch_saves_the_run_and_names_the_problem(tmp_path: Path) -> None:
     """A corrupt episode met mid-epoch: the finished steps are saved and the error is one ValueError."""
     _, va, gc = splits(64)

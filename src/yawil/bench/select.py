@@ -97,11 +97,12 @@ def select_checkpoint(checkpoints: Sequence[Path], out: Path, routes: int = 3, w
     if len(set(labels)) != len(labels):
         raise ValueError(f"select: candidates must differ in folder or file name, got {labels}")
     eps = validation_episodes(routes=routes)
+    # every candidate read and its agent built before any is driven: a bad last one fails in seconds, not hours
+    specs = [AgentSpec(str(path), speed_control=speed_control, stop_release=stop_release, stop_creep=stop_creep,
+                       engine=engine).validate() for path in checkpoints]
     rows: list[dict[str, Any]] = []
-    for path, label in zip(checkpoints, labels, strict=True):
+    for path, label, spec in zip(checkpoints, labels, specs, strict=True):
         ck = load_checkpoint(path, map_location="cpu")
-        spec = AgentSpec(str(path), speed_control=speed_control, stop_release=stop_release, stop_creep=stop_creep,
-                         engine=engine).validate()
         run_benchmark(eps, spec, out / label, workers=workers, progress=progress, label=label,
                       episodes_per_worker=episodes_per_worker)
         recs = read_records(out / label / "episodes.jsonl")

@@ -226,9 +226,11 @@ def _train(
         if d is not None:
             distributed.barrier(d)
 
-    def end_of_period(partial: bool) -> None:
+    def end_of_period(partial: bool, scheduled: bool = True) -> None:
         """Validate, log, keep best and last. `partial`: a budget stopped the epoch midway. Without a validation
-        split the metrics' validation columns are NaN and best.pt follows last.pt."""
+        split the metrics' validation columns are NaN and best.pt follows last.pt. `scheduled=False` (a stop by
+        Ctrl-C, SIGTERM or a data error): the validation is recorded (its row says `interrupted`) but does not
+        enter the choice of best.pt, so that an interrupted and resumed run keeps an uninterrupted run's best."""
         val = None
         if main:
             val = validate(driven, val_loader, norm, kind, cfg, runtime) if len(val_ds) else dict.fromkeys(VAL_KEYS, math.nan)
@@ -244,10 +246,12 @@ def _train(
             "time": pos.seconds,
             "samples_per_s": pos.samples / max(pos.seconds, 1e-9),
         }
+        if not scheduled:
+            row["interrupted"] = 1.0
         metrics.append(row)
         for key in ("train_loss", *val):
             writer.add_scalar(f"epoch/{key}", row[key], pos.step)
-        improved = row["val_loss"] < pos.best_val or not len(val_ds)
+        improved = scheduled and (row["val_loss"] < pos.best_val or not len(val_ds))
         if improved and len(val_ds):
             pos.best_val = row["val_loss"]
         if not partial:
@@ -306,7 +310,7 @@ def _train(
             # so --resume gives the weights of an uninterrupted run
             bar.close()
             if pos.batch > 0:
-                end_of_period(partial=True)
+                end_of_period(partial=True, scheduled=False)
             writer.close()
             if main:
                 plot_losses(out, metrics)
@@ -317,7 +321,7 @@ def _train(
             # the weights are those after pos.step whole steps: save them, then name the data problem
             bar.close()
             if pos.batch > 0:
-                end_of_period(partial=True)
+                end_of_period(partial=True, scheduled=False)
             writer.close()
             sync()
             raise ValueError(f"cannot read a training batch ({err}); the run is saved at step {pos.step}: "

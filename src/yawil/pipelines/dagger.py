@@ -221,6 +221,22 @@ class DaggerRun:
         with folder_lock(self.out, "DAgger run"):
             return self._run()
 
+    def check_round0(self) -> None:
+        """--round0 must be the model the rounds train (name and the --train-arg model_args it was built with):
+        the rounds start from its weights, so a mismatch would fail only after a round's collection."""
+        from yawil.policy.checkpoint import load_checkpoint
+
+        ckpt = load_checkpoint(self.cfg.round0, map_location="cpu")
+        if ckpt["model_name"] != self.cfg.model:
+            raise ValueError(f"--round0 {self.cfg.round0}: a {ckpt['model_name']} checkpoint; the rounds train "
+                             f"--model {self.cfg.model}")
+        wanted = self.cfg.train_args.get("model_args") or {}
+        differ = {k: (ckpt["model_config"].get(k), v) for k, v in wanted.items() if ckpt["model_config"].get(k) != v}
+        if differ:
+            raise ValueError(f"--round0 {self.cfg.round0}: built with " + ", ".join(
+                f"{k}={a!r}" for k, (a, _) in differ.items()) + "; --train-arg model_args asks for " + ", ".join(
+                f"{k}={b!r}" for k, (_, b) in differ.items()))
+
     def _run(self) -> Path:
         self.check_config()
         cfg = self.cfg
@@ -233,6 +249,8 @@ class DaggerRun:
             run_stage(self.stage("train_00"), lambda: self.train(0), self.log, "round 0: training")
         elif not Path(cfg.round0).is_file():
             raise ValueError(f"--round0 {cfg.round0}: no such checkpoint")
+        else:
+            self.check_round0()
         for r in range(1, cfg.rounds + 1):
             run_stage(self.stage(f"data_{r:02d}"), functools.partial(self.collect_round, r), self.log,
                       f"round {r}: on-policy data (beta {cfg.beta_of(r)})")

@@ -143,3 +143,18 @@ def file_sha256(path: str | os.PathLike[str]) -> str:
         for block in iter(lambda: fh.read(1 << 20), b""):
             h.update(block)
     return h.hexdigest()
+
+
+def require_free_space(folder: str | os.PathLike[str], need: int, what: str = "") -> None:
+    """OSError(ENOSPC) naming `folder` when its disk has less than `need` bytes free: checked before work whose
+    output would otherwise be lost at the write (an episode's flush, a training run's checkpoints)."""
+    import errno
+    import shutil
+
+    folder = Path(folder)
+    probe = next((p for p in (folder, *folder.parents) if p.exists()), Path("."))
+    free = shutil.disk_usage(probe).free
+    if free < need:
+        raise OSError(errno.ENOSPC, f"{folder}: the disk is (nearly) full, {free / 2**20:.1f} MiB free, "
+                      f"{need / 2**20:.0f} MiB needed{' ' + what if what else ''}; free some space and run the same "
+                      "command again (it resumes)")

@@ -196,12 +196,11 @@ def test_a_full_disk_stops_collection_in_one_clear_error(tmp_path: Path, monkeyp
     """Checked before each write: the episode's temporary file is removed and nothing half-written stays."""
     import shutil
 
-    import yawil.data.writer as writer_module
     from yawil.data.writer import MIN_FREE_BYTES
 
     real = shutil.disk_usage
     free = {"bytes": 10 * MIN_FREE_BYTES}
-    monkeypatch.setattr(writer_module.shutil, "disk_usage",
+    monkeypatch.setattr(shutil, "disk_usage",
                         lambda p: real(p)._replace(free=free["bytes"]))  # type: ignore[attr-defined]
     m = write_synthetic_dataset(tmp_path / "d", episodes=1, frames=5, k=3)
     free["bytes"] = MIN_FREE_BYTES - 1
@@ -221,7 +220,7 @@ def test_a_failed_checkpoint_write_names_the_full_disk(tmp_path: Path, monkeypat
 
     monkeypatch.setattr(ck.torch, "save", fail)
     monkeypatch.setattr(ck.shutil, "disk_usage", lambda p: shutil._ntuple_diskusage(100, 100, 0))  # type: ignore[attr-defined]
-    ckpt = {k: None for k in ck.REQUIRED_KEYS}
+    ckpt = {**{k: None for k in ck.REQUIRED_KEYS}, "state_dict": {}}
     with pytest.raises(OSError, match="the disk is full") as err:
         ck.save_checkpoint(ckpt, tmp_path / "last.pt")
     assert err.value.errno == errno.ENOSPC and list(tmp_path.iterdir()) == []

@@ -250,6 +250,35 @@ def test_an_interrupt_s_validation_does_not_choose_best(tmp_path: Path, monkeypa
     assert all(torch.equal(a[k], b[k]) for k in a)
 
 
+def test_a_missing_or_damaged_episode_file_is_refused_before_training(tmp_path: Path) -> None:
+    """The manifest lists an episode whose file is gone or damaged: train names it instead of training on
+    the rest (an empty training split, or half the data with exit 0)."""
+    from yawil.data.synthetic import write_synthetic_dataset
+    from yawil.learn.config import TrainConfig
+    from yawil.learn.setup import open_splits
+
+    data = tmp_path / "data"
+    write_synthetic_dataset(data, episodes=4, frames=4, seed=0)
+    files = sorted((data / "episodes").glob("*.h5"))
+    files[1].unlink()
+    files[2].write_bytes(b"damaged")
+    cfg = TrainConfig.from_dict({"model": "yaw-guided", "data": [str(data)], "out": str(tmp_path / "r")})
+    with pytest.raises(ValueError, match=r"2 episode file\(s\) listed in the manifest cannot be read.*ep_0000"):
+        open_splits(cfg)
+
+
+def test_a_disk_without_room_for_the_checkpoints_is_refused_before_the_first_step(
+        tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    import errno
+    import shutil
+
+    real = shutil.disk_usage
+    monkeypatch.setattr(shutil, "disk_usage", lambda p: real(p)._replace(free=32 << 20))
+    with pytest.raises(OSError, match="MiB needed for this run's checkpoints") as err:
+        train(small(tmp_path, "full", epochs=1), splits=splits(64))
+    assert err.value.errno == errno.ENOSPC and not (tmp_path / "full" / "last.pt").exists()
+
+
 def test_an_unreadable_batch_saves_the_run_and_names_the_problem(tmp_path: Path) -> None:
     """A corrupt episode met mid-epoch: the finished steps are saved and the error is one ValueError."""
     _, va, gc = splits(64)

@@ -9,12 +9,10 @@ atomically). A crash therefore loses at most the episode in progress, and a resu
 from __future__ import annotations
 
 import contextlib
-import errno
 import json
 import math
 import os
 import re
-import shutil
 from dataclasses import replace
 from pathlib import Path
 from types import TracebackType
@@ -45,6 +43,7 @@ from yawil.data.schema import (
     field_dtype,
     field_shape,
 )
+from yawil.fileio import require_free_space
 
 # Chosen by `benchmarks/loading.py --compare` (docs/dataset.md): one frame per chunk, so a random read
 # decompresses exactly one image (8-frame chunks read 6x slower); lzf because it decodes ~1.6x faster
@@ -64,10 +63,7 @@ def check_free_space(path: Path) -> None:
     Why before writing: once HDF5 has failed a write, closing the file fails again at every object h5py
     frees (a hundred 'Exception ignored' tracebacks) and the process segfaulted. Checked before each flush,
     the episode is discarded cleanly and a rerun resumes."""
-    free = shutil.disk_usage(path.parent).free
-    if free < MIN_FREE_BYTES:
-        raise OSError(errno.ENOSPC, f"{path.parent}: the disk is (nearly) full, {free / 2**20:.1f} MiB free; "
-                      f"free some space and run the same command again (it resumes)")
+    require_free_space(path.parent, MIN_FREE_BYTES)
 
 
 _TMP_RE = re.compile(r"^\.ep_\d+\.h5\.(\d+)\.tmp$")

@@ -275,6 +275,12 @@ def _train(
         if step in keep_at:
             save(out / f"step_{step:06d}.pt")
 
+    if main:  # the checkpoints must fit before a step is spent: a failed save loses every step since the last one
+        from yawil.fileio import require_free_space
+
+        weights = sum(v.numel() * v.element_size() for v in model.state_dict().values())
+        # last.pt (weights, two optimiser moments, the averaged copy) twice while it is replaced, one per kept step
+        require_free_space(out, weights * (8 + 4 * len(keep_at)) + (64 << 20), "for this run's checkpoints")
     model.train()
     n_batches = 0
     p = None

@@ -46,6 +46,12 @@ def open_splits(cfg: TrainConfig) -> tuple[Any, Any, dict[str, Any]]:
     train_eps, val_eps = data.split_episodes(cfg.data, fraction, cfg.seed)
     train_ds = data.DrivingDataset(cfg.data, episodes=train_eps)
     val_ds = data.DrivingDataset(cfg.data, episodes=val_eps)
+    skipped = train_ds.skipped + val_ds.skipped
+    if skipped:  # training on what is left would silently be another run (half the data, or no validation)
+        path, why = skipped[0]
+        raise ValueError(f"{len(skipped)} episode file(s) listed in the manifest cannot be read, the first {path}: "
+                         f"{why}; repair the dataset (yawil data check names them; a resumed yawil collect "
+                         "re-collects them) before training")
     return train_ds, val_ds, dataset_guidance_config(train_ds)
 
 

@@ -28,6 +28,11 @@ CASES = [
     (["export", "{t}/missing.pt", "--onnx", "{t}/m.onnx"], "missing.pt does not exist", "{t}/m.onnx"),
     (["dagger", "--out", "{t}/dg", "--beta", "x"], "--beta", "{t}/dg"),
     (["explain", "--checkpoint", "{t}/missing.pt", "--frames", "{t}", "--out", "{t}/e"], "does not exist", None),
+    (["collect", "--frames", "10", "--host", "10.0.0.2", "--out", "{t}/c"], "--host applies to --backend carla", "{t}/c"),
+    (["bench", "--suite", "corl2017", "--tasks", "straight", "--port", "3000", "--out", "{t}/b"],
+     "--port applies to --backend carla", "{t}/b"),
+    (["export", "{t}", "--onnx", "{t}/m.onnx"], "is a folder; expected a checkpoint file", "{t}/m.onnx"),
+    (["export", "{t}/afile", "--onnx", "{t}/m.onnx", "--batch", "0"], "--batch 0", "{t}/m.onnx"),
 ]
 
 

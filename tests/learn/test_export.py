@@ -81,3 +81,25 @@ def test_yilratt_export_with_attention_outputs(tmp_path: Path, tiny_checkpoint: 
     assert names[:2] == ["actions", "pred_speed"] and len(names) > 2 and names[2] == "attention_0"
     agreement = check_onnx(ckpt, out, batch=2)
     assert all(a.ok(1e-4, 1e-3) for a in agreement) and agreement[0].max_abs_diff <= 1e-4
+
+
+def test_check_on_dataset_frames_and_non_finite_outputs_fail(tmp_path: Path, tiny_checkpoint: Any,
+                                                            tiny_dataset: Any, capsys: pytest.CaptureFixture[str]) -> None:
+    """--check compares on real frames too (--data, or a zoo model's probe), and an output that is inf or NaN in
+    both engines (a damaged model agrees with itself perfectly) fails the check."""
+    from yawil.policy.checkpoint import load_checkpoint, save_checkpoint
+
+    ckpt = tiny_checkpoint("yaw-guided", guidance_dim=15).path
+    data = tiny_dataset(episodes=2, frames=5, k=15)
+    out = tmp_path / "g.onnx"
+    assert main(["export", str(ckpt), "--onnx", str(out), "--check", "--data", str(data), "--batch", "3"]) == 0
+    printed = capsys.readouterr().out
+    assert "real:actions" in printed and "FAIL" not in printed
+    broken = load_checkpoint(ckpt)
+    name = next(k for k, v in broken["state_dict"].items() if k.endswith("weight") and v.is_floating_point())
+    broken["state_dict"][name].fill_(float("inf"))
+    save_checkpoint(broken, tmp_path / "broken.pt")
+    assert main(["export", str(tmp_path / "broken.pt"), "--onnx", str(tmp_path / "b.onnx"), "--check"]) == 1
+    assert "FAIL" in capsys.readouterr().out and not (tmp_path / "b.onnx").exists()
+    assert main(["export", str(ckpt), "--onnx", str(tmp_path / "c.onnx"), "--batch", "0"]) == 2
+    assert "--batch 0: expected a batch size >= 1" in capsys.readouterr().err

@@ -198,6 +198,9 @@ def _run_suite(args: argparse.Namespace) -> int:
     from yawil.executor import executor_from_args
     from yawil.sim.carla.servers import server_worlds, servers_for
 
+    from yawil.sim.carla.connection import check_connection_arguments
+
+    check_connection_arguments(args)
     executor = executor_from_args(args)
     servers = servers_for(args.carla_servers, args.workers, args.backend)
     spec = AgentSpec(args.agent, args.yaw_noise_deg, args.command_noise_p, yaw_noise_mode=args.yaw_noise,

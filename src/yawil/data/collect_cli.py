@@ -134,6 +134,9 @@ def run(args: argparse.Namespace) -> int:
     if args.backend != "embedded" and args.workers != 1 and servers is None:
         raise SystemExit(f"yawil collect: --backend {args.backend} with --workers {args.workers}: give one server per "
                          "worker with --carla-servers HOST:PORT,...")
+    from yawil.sim.carla.connection import check_connection_arguments
+
+    check_connection_arguments(args)
     if args.backend == "embedded":  # before any folder is made: a typo'd town must not leave a dataset behind
         from yawil.sim.town.map.layout import resolve_town
 

@@ -17,6 +17,7 @@ Export uses torch's TorchScript-based exporter (`dynamo=False`): the torch.expor
 from __future__ import annotations
 
 import argparse
+import math
 import os
 import sys
 from dataclasses import dataclass
@@ -35,7 +36,10 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--onnx", required=True, metavar="OUT", help="ONNX file to write")
     p.add_argument("--force", action="store_true", help="replace an existing output file (never one inside a dataset, run, results or zoo folder)")
     p.add_argument("--opset", type=int, default=OPSET, help=f"ONNX opset (>= 17, default {OPSET})")
-    p.add_argument("--check", action="store_true", help="compare onnxruntime with torch on a random batch")
+    p.add_argument("--check", action="store_true", help="compare onnxruntime with torch on a random batch and on "
+                   "real frames (a zoo model's probe frames, or --data's); a non-finite output fails the check")
+    p.add_argument("--data", default=None, metavar="DIR", help="--check: a dataset to draw the real frames from "
+                   "(default: the zoo model's probe frames; none for other checkpoints)")
     p.add_argument("--batch", type=int, default=4, help="batch size of the --check comparison (default 4)")
     p.add_argument(
         "--tolerance", type=float, default=1e-4,
@@ -136,18 +140,41 @@ class Agreement:
     output: str
     max_abs_diff: float
     max_abs_ref: float
+    finite: bool = True  # every value of both finite (a damaged model gives inf or NaN that agree perfectly)
 
     def ok(self, tolerance: float, attention_tolerance: float) -> bool:
         """Driving outputs: `tolerance` scaled by the output's magnitude when it exceeds 1 (predicted speed
         is in normalised units, float32 keeps ~7 digits). Attention maps: `attention_tolerance`, since a
         sharp softmax turns 1e-5 differences of the logits of a 34-layer network into ~1e-4 of the map."""
-        if self.output.startswith("attention"):
+        if not self.finite:
+            return False
+        if self.output.split(":")[-1].startswith("attention"):
             return self.max_abs_diff <= attention_tolerance
         return self.max_abs_diff <= tolerance * max(1.0, self.max_abs_ref)
 
 
-def check_onnx(checkpoint: str | Path, onnx_path: str | Path, batch: int = 4, seed: int = 0) -> list[Agreement]:
-    """Run onnxruntime and torch (fp32) on the same random batch and compare every output."""
+def real_frames(checkpoint: str, data: str | Path | None, count: int) -> dict[str, Any] | None:
+    """Model inputs of real camera frames through the agent's own input path: `data`'s frames, else a zoo model's
+    probe frames, else None."""
+    from yawil.zoo import PREFIX, zoo_dir
+    from yawil.zoo.pack import probe_agent, read_probe, sample_probe
+
+    if data is None and not checkpoint.startswith(PREFIX):
+        return None
+    agent = probe_agent(checkpoint)
+    probe = sample_probe(Path(data), agent.kind, count) if data is not None else read_probe(
+        zoo_dir(checkpoint[len(PREFIX):]))
+    n = len(probe["speed"])
+    inputs = agent.spec.from_frames(list(probe["image"]), [float(s) for s in probe["speed"]],
+                                    [probe["guidance"][i] if agent.kind is not None else None for i in range(n)],
+                                    [int(probe["command"][i]) if agent.uses_command else None for i in range(n)])
+    return dict(inputs.named())
+
+
+def check_onnx(checkpoint: str | Path, onnx_path: str | Path, batch: int = 4, seed: int = 0,
+               data: str | Path | None = None) -> list[Agreement]:
+    """Run onnxruntime and torch (fp32) on the same inputs and compare every output: a random batch, and real
+    frames where there are some (`real_frames`; those rows are named real:OUTPUT)."""
     import numpy as np
     import onnxruntime as ort
     import torch
@@ -157,18 +184,25 @@ def check_onnx(checkpoint: str | Path, onnx_path: str | Path, batch: int = 4, se
 
     model = model_from_checkpoint(load_checkpoint(checkpoint)).eval()
     names = input_names(model)
-    x = example_inputs(model, batch, seed=seed, image_size=image_size(model))
-    with torch.no_grad():
-        ref = graph_module(model)(*(x[n] for n in names))
     session = ort.InferenceSession(str(onnx_path), providers=["CPUExecutionProvider"])
-    got = session.run(None, {n: x[n].numpy() for n in names})
     outputs = [o.name for o in session.get_outputs()]
-    if len(got) != len(ref):
-        raise ValueError(f"{onnx_path} has {len(got)} outputs, the torch model gives {len(ref)}")
-    return [
-        Agreement(name, float(np.max(np.abs(g - r.numpy()))), float(np.max(np.abs(r.numpy()))))
-        for name, g, r in zip(outputs, got, ref, strict=True)
-    ]
+    batches = [("", example_inputs(model, batch, seed=seed, image_size=image_size(model)))]
+    real = real_frames(str(checkpoint), data, batch)
+    if real is not None:
+        batches.append(("real:", real))
+    rows = []
+    for prefix, x in batches:
+        with torch.no_grad():
+            ref = graph_module(model)(*(x[n].float() if x[n].is_floating_point() else x[n] for n in names))
+        got = session.run(None, {n: x[n].contiguous().numpy() for n in names})
+        if len(got) != len(ref):
+            raise ValueError(f"{onnx_path} has {len(got)} outputs, the torch model gives {len(ref)}")
+        for name, g, r in zip(outputs, got, ref, strict=True):
+            r = r.numpy()
+            finite = bool(np.isfinite(g).all() and np.isfinite(r).all())
+            rows.append(Agreement(prefix + name, float(np.max(np.abs(g - r))) if finite else math.inf,
+                                  float(np.max(np.abs(r))) if finite else math.inf, finite))
+    return rows
 
 
 def run(args: argparse.Namespace) -> int:
@@ -194,7 +228,7 @@ def run(args: argparse.Namespace) -> int:
         print(f"wrote {path}")
         return 0
     try:
-        results = check_onnx(args.checkpoint, path, batch=args.batch)
+        results = check_onnx(args.checkpoint, path, batch=args.batch, data=args.data)
     except BaseException:
         path.unlink(missing_ok=True)
         raise
@@ -203,7 +237,9 @@ def run(args: argparse.Namespace) -> int:
         ok = a.ok(args.tolerance, args.attention_tolerance)
         all_ok &= ok
         print(f"  {a.output}: max abs difference {a.max_abs_diff:.3g} (max |value| {a.max_abs_ref:.3g}) {'ok' if ok else 'FAIL'}")
-    worst = max(a.max_abs_diff for a in results if not a.output.startswith("attention"))
+    worst = max(a.max_abs_diff for a in results if not a.output.split(":")[-1].startswith("attention"))
+    if not any(a.output.startswith("real:") for a in results):
+        print("  (random inputs only: give --data DIR to compare on dataset frames too)")
     print(
         f"onnxruntime vs torch: max abs difference {worst:.3g} on actions/speed "
         f"({'ok' if all_ok else 'FAIL'}; tolerance {args.tolerance:g}, attention {args.attention_tolerance:g})"

@@ -188,6 +188,10 @@ def load_checkpoint(path: str | os.PathLike[str], map_location: str | torch.devi
 
         path = resolve_checkpoint(path)
     path = Path(path)
+    if path.is_dir():
+        inside = [p.name for p in (path / "best.pt", path / "last.pt") if p.is_file()]
+        raise ValueError(f"checkpoint {path} is a folder; expected a checkpoint file" +
+                         (f" (it holds {' and '.join(inside)})" if inside else ""))
     if not path.is_file():
         raise FileNotFoundError(f"checkpoint {path} does not exist")
     try:

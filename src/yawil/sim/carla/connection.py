@@ -10,7 +10,7 @@ import argparse
 from dataclasses import asdict, dataclass
 from typing import Any
 
-__all__ = ["CarlaConnection", "add_connection_arguments", "connection_from_args"]
+__all__ = ["CarlaConnection", "add_connection_arguments", "check_connection_arguments", "connection_from_args"]
 
 
 @dataclass(frozen=True)
@@ -34,6 +34,18 @@ def add_connection_arguments(p: argparse.ArgumentParser, timeout: float | None =
     p.add_argument("--host", default=d.host, help=f"{prefix}server host (default {d.host})")
     p.add_argument("--port", type=int, default=d.port, help=f"{prefix}server port (default {d.port})")
     p.add_argument("--timeout", type=float, default=t, help=f"{prefix}{timeout_help} (default {t:g}{'; ' + note if note else ''})")
+
+
+def check_connection_arguments(args: argparse.Namespace, timeout: float | None = None) -> None:
+    """--host, --port or --timeout changed without --backend carla is refused in one line: they would be ignored."""
+    if getattr(args, "backend", "embedded") == "carla":
+        return
+    d = CarlaConnection()
+    changed = [f"--{k}" for k, default in (("host", d.host), ("port", d.port),
+                                           ("timeout", d.timeout if timeout is None else timeout))
+               if getattr(args, k, default) != default]
+    if changed:
+        raise ValueError(f"{', '.join(changed)} applies to --backend carla; this run uses the embedded simulator")
 
 
 def connection_from_args(args: argparse.Namespace) -> CarlaConnection:

@@ -53,3 +53,15 @@ def test_bad_input_is_one_line(tmp_path: Path, argv: list[str], text: str, absen
     assert text in lines[0] and "Traceback" not in lines[0], lines[0]
     if absent is not None:
         assert not Path(absent.replace("{t}", str(tmp_path))).exists()
+
+
+def test_the_program_exits_2_for_every_refusal(tmp_path: Path) -> None:
+    """Commands that refuse with their own SystemExit line and those that raise ValueError exit alike (2)."""
+    import subprocess
+    import sys
+
+    for argv, text in ((["bench", "--suite", "corl2017", "--tasks", "straight", "--routes", "5:2"], "selects no route"),
+                       (["export", str(tmp_path / "none.pt"), "--onnx", str(tmp_path / "m.onnx")], "none.pt")):
+        done = subprocess.run([sys.executable, "-m", "yawil.cli", *argv, *(["--out", str(tmp_path / "b")]
+                               if argv[0] == "bench" else [])], capture_output=True, text=True, timeout=120)
+        assert done.returncode == 2 and text in done.stderr and "Traceback" not in done.stderr, done.stderr

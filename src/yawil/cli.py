@@ -104,5 +104,19 @@ def main(argv: Sequence[str] | None = None) -> int:
             signal.signal(sig, handler)
 
 
+def entry() -> int:
+    """The `yawil` program: `main`, with a command's own one-line SystemExit given the exit status of every other
+    refusal. Exit statuses: 0 done; 1 the work ran and a check it made failed (data check, export --check,
+    zoo check); 2 refused before or during the work, in one line (bad input, a held folder, a full disk);
+    130 Ctrl-C; 143 SIGTERM (129 SIGHUP)."""
+    try:
+        return main()
+    except SystemExit as stop:
+        if not isinstance(stop.code, str):
+            raise
+        print(stop.code, file=sys.stderr)
+        return 2
+
+
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(entry())

@@ -50,10 +50,13 @@ def test_partial_last_line_is_ignored_and_cut(tmp_path: Path) -> None:
     assert [json.loads(x)["route_id"] for x in lines] == [0, 1, 2]
 
 
-def test_complete_json_without_newline_is_partial(tmp_path: Path) -> None:
+def test_complete_json_without_newline_is_partial(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
     path = tmp_path / EPISODES_FILE
     path.write_text(json.dumps(_rec(0)) + "\n" + json.dumps(_rec(1)))
     assert len(read_records(path)) == 1
+    assert len(list(iter_results(tmp_path))) == 1  # the report's reading says what it leaves out
+    err = capsys.readouterr().err
+    assert "line 2 is an unfinished record" in err and err.count("\n") == 1
 
 
 def test_corrupt_middle_line_names_file_and_line(tmp_path: Path) -> None:

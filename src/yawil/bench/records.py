@@ -8,9 +8,11 @@ keys are present are skipped: nothing is repeated, nothing is lost.
 
 from __future__ import annotations
 
+import functools
 import json
 import os
-from collections.abc import Iterator, Mapping
+import sys
+from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import Any, TextIO
 
@@ -43,12 +45,13 @@ def episode_key(rec: Mapping[str, Any]) -> str:
         raise ValueError(f"episode record lacks key field {err.args[0]!r}") from None
 
 
-def read_records(path: str | Path, repair: bool = False) -> list[dict[str, Any]]:
+def read_records(path: str | Path, repair: bool = False,
+                 on_partial: Callable[[str], None] | None = None) -> list[dict[str, Any]]:
     """All complete records of a JSON-lines file.
 
-    A last line without its newline or that does not parse is the trace of a kill mid-write: it is ignored,
-    and cut from the file when `repair` is True so that appending continues on a clean line. A bad line
-    anywhere else is corruption and raises ValueError naming the file and line.
+    A last line without its newline or that does not parse is the trace of a kill mid-write: it is ignored
+    (`on_partial` is told, in one line), and cut from the file when `repair` is True so that appending continues
+    on a clean line. A bad line anywhere else is corruption and raises ValueError naming the file and line.
     """
     path = Path(path)
     if not path.exists():
@@ -77,6 +80,9 @@ def read_records(path: str | Path, repair: bool = False) -> list[dict[str, Any]]
             records.append(rec)
         pos = nl + 1
         good_end = pos
+    if good_end < len(data) and on_partial is not None:
+        on_partial(f"{path}: line {lineno} is an unfinished record (a run stopped mid-write); left out, and the "
+                   "episode is driven again when the run is resumed")
     if repair and good_end < len(data):
         with open(path, "r+b") as fh:
             fh.truncate(good_end)
@@ -217,7 +223,8 @@ def iter_results(folder: str | Path) -> Iterator[dict[str, Any]]:
     if not path.exists():
         raise ValueError(f"{folder}: no {EPISODES_FILE} found (expected a folder written by `yawil bench`)")
     seen: dict[str, int] = {}
-    for i, rec in enumerate(read_records(path)):
+    note = functools.partial(print, file=sys.stderr)
+    for i, rec in enumerate(read_records(path, on_partial=lambda m: note(f"note: {m}"))):
         check_record(rec, f"{path}: record {i + 1}")
         key = episode_key(rec)
         if key in seen:  # counted twice, a figure would be wrong without a word

@@ -195,13 +195,15 @@ def test_a_tiny_dagger_run_end_to_end_and_resumed(tmp_path: Path) -> None:
     Ego-referenced guidance, so that the round's frames are seen to follow the expert data's config."""
     cfg = DaggerConfig(model="yaw-guided", expert_frames=30, rounds=1, round_frames=20, episode_frames=40,
                        round0_steps=2, round_steps=2, batch_size=8, workers=1, threads=1, round_lr=2e-4,
-                       train_args={"val_fraction": 0.5, "augment": {"enabled": False}}, guidance_reference="ego")
+                       train_args={"val_fraction": 0.5, "augment": {"enabled": False}}, guidance_reference="ego",
+                       round_vehicles=(3, 3), round_pedestrians=(0, 1))
     out = tmp_path / "dg"
     # two expert episodes are needed for a split: 30 frames at <= 40 per episode
     final = DaggerRun(out, cfg, log=lambda m: None, progress=False).run()
     assert final == out / "train" / "round_01" / "last.pt" and final.is_file()
     m = read_manifest(out / "data" / "round_01")
     assert m.frames >= 20 and m.config["learner"]["checkpoint"].endswith("round_00/last.pt")
+    assert (list(m.config["collector"]["vehicles"]), list(m.config["collector"]["pedestrians"])) == ([3, 3], [0, 1])
     assert m.config["guidance"]["reference"] == "ego" == read_manifest(out / "data" / "expert").config["guidance"]["reference"]
     with open_episode(m.path_of(m.episodes[0])) as ep:
         labels = ep.labels()
@@ -267,3 +269,19 @@ def test_dagger_cli_refuses_bad_options_in_one_line(tmp_path: Path, capsys: pyte
         with pytest.raises(SystemExit) as err:
             main(["dagger", "--out", str(tmp_path / "o"), *argv])
         assert text in str(err.value) and "\n" not in str(err.value)
+
+
+def test_a_round0_of_another_model_is_refused_before_any_collection(tmp_path: Path, tiny_checkpoint: Any,
+                                                                    tiny_dataset: Any) -> None:
+    import time
+
+    ckpt = tiny_checkpoint("yaw-guided", guidance_dim=15).path
+    data = tiny_dataset(episodes=2, frames=5, k=15)
+    t0 = time.perf_counter()
+    for model, args, text in (("yilratt", {}, "a yaw-guided checkpoint; the rounds train --model yilratt"),
+                              ("yaw-guided", {"model_args": {"aux": True}}, "built with aux=")):
+        cfg = DaggerConfig(model=model, round0=str(ckpt), expert_data=str(data), rounds=1, train_args=args)
+        with pytest.raises(ValueError, match=text):
+            DaggerRun(tmp_path / f"dg_{model}", cfg, log=lambda m: None, progress=False).run()
+        assert not (tmp_path / f"dg_{model}" / "data").exists()
+    assert time.perf_counter() - t0 < 20

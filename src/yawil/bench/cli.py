@@ -196,9 +196,8 @@ def _run_suite(args: argparse.Namespace) -> int:
     from yawil.bench.runner import AgentSpec, agent_device, drive_options, run_benchmark
     from yawil.bench.suites import episodes
     from yawil.executor import executor_from_args
-    from yawil.sim.carla.servers import server_worlds, servers_for
-
     from yawil.sim.carla.connection import check_connection_arguments
+    from yawil.sim.carla.servers import server_worlds, servers_for
 
     check_connection_arguments(args)
     executor = executor_from_args(args)

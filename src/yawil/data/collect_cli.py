@@ -9,7 +9,7 @@ import argparse
 from typing import Any
 
 
-def _range(text: str) -> tuple[int, int]:
+def int_range(text: str) -> tuple[int, int]:
     """'30' -> (30, 30); '10-30' -> (10, 30)."""
     try:
         parts = [int(p) for p in text.split("-")] if "-" in text.strip("-") else [int(text)]
@@ -63,9 +63,9 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
 
     add_executor_arguments(p)
     p.add_argument("--seed", type=int, default=0, help="episode ids are seed*100000+index (default 0)")
-    p.add_argument("--vehicles", type=_range, default=d.vehicles, metavar="N|LO-HI",
+    p.add_argument("--vehicles", type=int_range, default=d.vehicles, metavar="N|LO-HI",
                    help=f"vehicles per episode: N, or LO-HI drawn uniformly per episode (default {_span(d.vehicles)})")
-    p.add_argument("--pedestrians", type=_range, default=d.pedestrians, metavar="N|LO-HI",
+    p.add_argument("--pedestrians", type=int_range, default=d.pedestrians, metavar="N|LO-HI",
                    help=f"pedestrians per episode: N, or LO-HI drawn uniformly per episode (default {_span(d.pedestrians)})")
     p.add_argument("--min-route-length", type=float, default=d.min_route_length,
                    help=f"metres (default {d.min_route_length:g})")

@@ -126,7 +126,10 @@ def _train(
             raise ValueError(f"init_from {cfg.init_from}: guidance config {init['guidance_config']} differs from the "
                              f"data's {guidance_config}")
         try:
-            model.load_state_dict(init["state_dict"])
+            result = model.load_state_dict(init["state_dict"], strict=not init.get("omitted"))
+            stray = [k for k in result.missing_keys if not any(k.startswith(f"{m}.") for m in init.get("omitted", []))]
+            if stray or result.unexpected_keys:  # a zoo model leaves out only the modules no output uses
+                raise RuntimeError(f"missing {stray[:3]}, unexpected {result.unexpected_keys[:3]}")
         except RuntimeError as err:
             raise ValueError(f"init_from {cfg.init_from}: weights do not fit model {cfg.model} "
                              f"with model_args {cfg.model_args}: {str(err).splitlines()[0]}") from None

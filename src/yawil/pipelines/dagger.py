@@ -81,6 +81,10 @@ class DaggerConfig:
     speed_control: bool | str = False
     stop_release: float = 0.0  # s: the learner's "stop" release, as `yawil bench --stop-release`
     stop_creep: float = 0.0  # m: the release's creep length, as `yawil bench --stop-creep`
+    # traffic of the on-policy rounds (LO, HI drawn per episode; None: collect's default). Why: dense-traffic
+    # failures need the learner's own states in queues, which the default 10-30 vehicles rarely make
+    round_vehicles: tuple[int, int] | None = None
+    round_pedestrians: tuple[int, int] | None = None
     expert_args: dict[str, float] = field(default_factory=dict)  # ExpertConfig settings of the expert (labels, takeovers)
     # the yaw guidance's reference when round 0's data is collected here; rounds always take the expert data's
     guidance_reference: str = GuidanceConfig.reference
@@ -114,6 +118,10 @@ class DaggerConfig:
         except ValueError:
             need(False, "stop_creep", "metres >= 0, > 0 only with a stop_release")
         need(isinstance(self.expert_args, dict), "expert_args", "a mapping of ExpertConfig settings")
+        for name in ("round_vehicles", "round_pedestrians"):
+            v = getattr(self, name)
+            need(v is None or (len(v) == 2 and all(_is_int(x) for x in v) and 0 <= v[0] <= v[1]), name,
+                 "None or (LO, HI) integers with 0 <= LO <= HI")
         need(self.guidance_reference in REFERENCES, "guidance_reference", f"one of {', '.join(REFERENCES)}")
         need(self.expert_data is None or self.guidance_reference == GuidanceConfig.reference, "guidance_reference",
              f"{GuidanceConfig.reference} (the default) with --expert-data (the data's own reference is used)")
@@ -137,7 +145,15 @@ class DaggerConfig:
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
         d["beta"] = list(self.beta)
+        for name in ("round_vehicles", "round_pedestrians"):
+            d[name] = None if d[name] is None else list(d[name])
         return d
+
+
+def _traffic(text: str) -> tuple[int, int]:
+    from yawil.data.collect_cli import int_range  # parsed as yawil collect --vehicles parses it
+
+    return int_range(text)
 
 
 def _is_int(v: Any) -> bool:
@@ -226,6 +242,7 @@ class DaggerRun:
         the rounds start from its weights, so a mismatch would fail only after a round's collection."""
         from yawil.policy.checkpoint import load_checkpoint
 
+        assert self.cfg.round0 is not None
         ckpt = load_checkpoint(self.cfg.round0, map_location="cpu")
         if ckpt["model_name"] != self.cfg.model:
             raise ValueError(f"--round0 {self.cfg.round0}: a {ckpt['model_name']} checkpoint; the rounds train "
@@ -282,10 +299,13 @@ class DaggerRun:
                           identity=str(policy.resolve()), min_world_seed=BENCH_WORLD_SEED_LIMIT,
                           reject_route=BenchmarkRoutes(cfg.town))
         # No steering noise (the learner makes its own mistakes); the second before a collision is not a label.
+        traffic: dict[str, Any] = {k: tuple(v) for k, v in (("vehicles", cfg.round_vehicles), ("pedestrians", cfg.round_pedestrians))
+                   if v is not None}
         s = collect(self.round_data(r), town=cfg.town, weathers="train", frames=cfg.round_frames, workers=cfg.workers,
                     seed=cfg.seed + ROUND_SEED_STRIDE * r, progress=self.progress, learner=learner, desc=f"round {r}",
                     noise_fraction=0.0, trim_seconds=1.0, max_episode_frames=cfg.episode_frames,
-                    expert_config=cfg.expert_config(), executor=cfg.executor_config(), guidance=self.guidance())
+                    expert_config=cfg.expert_config(), executor=cfg.executor_config(), guidance=self.guidance(),
+                    **traffic)
         self.log(f"round {r}: {s.frames_written} frames stored this run; frames driven by "
                  f"{json.dumps(s.drivers)}; {s.takeovers} takeovers; outcomes {json.dumps(s.outcomes)}")
         return {"frames": s.dataset_frames, "drivers": s.drivers, "takeovers": s.takeovers, "outcomes": s.outcomes,
@@ -328,6 +348,10 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--expert-frames", type=int, default=d.expert_frames, help=f"round-0 expert frames (default {d.expert_frames})")
     p.add_argument("--rounds", type=int, default=d.rounds, help=f"on-policy rounds (default {d.rounds})")
     p.add_argument("--round-frames", type=int, default=d.round_frames, help=f"frames per round (default {d.round_frames})")
+    p.add_argument("--round-vehicles", type=_traffic, default=None, metavar="N|LO-HI",
+                   help="vehicles of the on-policy rounds' episodes (default: yawil collect's)")
+    p.add_argument("--round-pedestrians", type=_traffic, default=None, metavar="N|LO-HI",
+                   help="pedestrians of the on-policy rounds' episodes (default: yawil collect's)")
     p.add_argument("--episode-frames", type=int, default=d.episode_frames,
                    help="end every episode after this many steps (default 0: no limit)")
     p.add_argument("--round0-steps", type=int, default=d.round0_steps, help=f"round-0 training steps (default {d.round0_steps})")
@@ -400,6 +424,7 @@ def run(args: argparse.Namespace) -> int:
             threads=args.threads, train_args=_train_args(args.train_arg),
             round0=args.round0, expert_data=args.expert_data, speed_control=args.speed_control,
             stop_release=args.stop_release, stop_creep=args.stop_creep,
+            round_vehicles=args.round_vehicles, round_pedestrians=args.round_pedestrians,
             expert_args=_expert_args(args.expert_arg), guidance_reference=args.guidance_reference,
         )
         from yawil.learn.config import TrainConfig

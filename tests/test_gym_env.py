@@ -63,17 +63,43 @@ def test_image_is_the_main_key_with_camera_and_action_bounds() -> None:
 def test_reward_is_progress_and_reset_is_seeded() -> None:
     env = YawilDriveEnv(town="square", camera=False, min_route_length=60.0)
     o1, _ = env.reset(seed=4)
-    total = 0.0
+    total, rewards = 0.0, []
     for _ in range(60):
         _, r, term, trunc, info = env.step(np.array([0.0, 0.6, 0.0], dtype=np.float32))
         total += r
+        rewards.append(r)
     assert total > 5.0 and info["route_index"] > 5
+    cruise = rewards[-10:]  # continuous progress: every step at speed moves it, not whole metres now and then
+    assert all(0.05 < r < 2.0 for r in cruise) and len({round(r, 6) for r in cruise}) > 2
+    assert info["success"] is False and info["reason"] is None
     o2, _ = env.reset(seed=4)
     assert np.array_equal(o1["pose"], o2["pose"]) and np.array_equal(o1["route"], o2["route"])
     with pytest.raises(ValueError, match="steer"):
         env.step(np.array([0.0, 0.5], dtype=np.float32))
-    with pytest.raises(ValueError, match="Control"):
-        env.step(np.array([0.0, 2.0, 0.0], dtype=np.float32))
+    with pytest.raises(ValueError, match="finite"):
+        env.step(np.array([0.0, np.nan, 0.0], dtype=np.float32))
+    env.step(np.array([0.0, 2.0, -1.0], dtype=np.float32))  # clipped to the Box, as documented (it used to raise)
+    env.close()
+
+
+def test_an_episode_ends_with_success_and_the_benchmark_s_reason() -> None:
+    """The expert reaches the goal (success, "goal"); driving into the first obstacle ends the episode at the
+    collision with its kind as the reason (an option keeps driving)."""
+    env = YawilDriveEnv(town="square", camera=False, min_route_length=60.0, expert_action=True)
+    _, info = env.reset(seed=1)
+    for _ in range(2000):
+        _, _, term, trunc, info = env.step(info["expert_action"])
+        if term or trunc:
+            break
+    assert term and info["success"] is True and info["reason"] == "goal"
+    env.close()
+    env = YawilDriveEnv(town="town01", camera=False, vehicles=0, min_route_length=100.0)
+    env.reset(seed=3)
+    for _ in range(3000):  # full throttle, steering left: off the road into something static
+        _, _, term, trunc, info = env.step(np.array([-0.6, 1.0, 0.0], dtype=np.float32))
+        if term or trunc:
+            break
+    assert term and info["success"] is False and info["reason"].startswith("collision_"), info["reason"]
     env.close()
 
 

@@ -234,3 +234,29 @@ class Agent:
 
     def _speed_of(self, value: float) -> float:
         return float(self.norm.speed_inverse(np.float32(value)))  # type: ignore[arg-type]
+
+
+def load_agent(checkpoint: str | os.PathLike[str], *, threads: int | None = None, **options: Any) -> Agent:
+    """A trained model as a driving agent, the one call a Python user needs: a checkpoint path or `zoo:NAME` (then
+    driven as its card says unless drive options are given), on the CPU unless `device=` says otherwise.
+
+    Sets torch's threads for this process (`threads`, default min(4, cores)): torch's default of one per core
+    made `act` take ~2 s on a busy 2-core machine (55-60 ms with one thread), and a batch of one gains little
+    beyond four. Other keywords go to `Agent.from_checkpoint` (engine, precision, drive settings, seed, slots)."""
+    n = threads if threads is not None else min(4, os.cpu_count() or 1)
+    if isinstance(n, bool) or not isinstance(n, int) or n < 1:
+        raise ValueError(f"threads={threads!r}: expected an integer >= 1")
+    torch.set_num_threads(n)
+    return Agent.from_checkpoint(checkpoint, **options)
+
+
+def gym_action(agent: Any, env: Any) -> np.ndarray:
+    """The agent's action for a yawil Gymnasium env's current step, as the env's action array (steer, throttle,
+    brake). The agent reads the simulator observation the env keeps (`last_observation`), so it computes its
+    guidance as its model was trained, whatever the env's own guidance settings (a zoo model trained with the
+    `ego` reference fed a default env's `route` guidance would steer up to 0.5 differently, silently)."""
+    obs = getattr(getattr(env, "unwrapped", env), "last_observation", None)
+    if obs is None:
+        raise ValueError("gym_action needs a yawil env (yawil/Town01-v0, ...) after reset()")
+    c = agent.act(obs)
+    return np.array([c.steer, c.throttle, c.brake], dtype=np.float32)

@@ -16,9 +16,17 @@ with K and spacing from `guidance_config` (default 15 points, 2 m). `guidance=No
 `guidance` (the observation before they were added). Action: Box([-1, 0, 0], [1, 1, 1]) = (steer, throttle,
 brake), CARLA convention.
 
-Reward per step = metres of route progress - 50 per collision - 5 per lane invasion - 20 per red light.
-`terminated` when the goal is reached (or at a collision if terminate_on_collision); `truncated` at the
-timeout. With `expert_action=True` (or reset option {"expert_action": True}) `info["expert_action"]` holds
+Reward per step = metres of route progress (the ego's continuous projection on the route, so it is ~0.5 a
+step at 5 m/s, and negative when backing up) - 50 per collision - 5 per lane invasion - 20 per red light.
+`terminated` when the goal is reached (or at a collision, unless terminate_on_collision=False); `truncated` at
+the timeout. `info["success"]` (the goal reached) and `info["reason"]` (None while the episode runs; then
+"goal", "collision_vehicle" / "collision_pedestrian" / "collision_static" or "timeout") say how it ended, as
+the benchmark names it. An action outside the Box is clipped to it (a non-finite one is refused), as the
+simulator clips controls.
+
+To drive with a trained agent, give it the simulator observation the env keeps: `agent.act(env.unwrapped.
+last_observation)` (`yawil.agent.gym_action(agent, env)`): the agent computes its own guidance the way its model
+was trained (its checkpoint's reference), whatever this env's `guidance_config` is. With `expert_action=True` (or reset option {"expert_action": True}) `info["expert_action"]` holds
 what the privileged expert (`yawil.expert.Expert`) would do for the returned observation, as float32
 (steer, throttle, brake): the label imitation learning (and DAgger) needs.
 
@@ -126,6 +134,8 @@ class YawilDriveEnv(gym.Env[dict[str, Any], np.ndarray]):
                                        np.array([1.0, 1.0, 1.0], dtype=np.float32), dtype=np.float32)
         self._last: Observation | None = None
         self._progress = 0.0
+        self._progress_hint: int | None = None  # route segment of the last progress projection
+        self._reason: str | None = None
         self._hint: int | None = None  # route segment of the last guidance, as the data collector keeps it
         self._expert: Expert | None = None
         self._label = False  # whether this episode's info carries the expert's action
@@ -153,9 +163,15 @@ class YawilDriveEnv(gym.Env[dict[str, Any], np.ndarray]):
             out["image"] = obs.image
         return out
 
+    def _route_s(self, obs: Observation) -> float:
+        """Metres along the route of the ego's projection (continuous, unlike the judge's 1 m route points)."""
+        self._progress_hint, s = project_on_route(obs.route.xy, (obs.pose.x, obs.pose.y), hint_index=self._progress_hint)
+        return s
+
     def _info(self, obs: Observation) -> dict[str, Any]:
         info: dict[str, Any] = {"events": obs.events, "route_index": obs.route_index, "time": obs.time,
-                                "distance_driven": obs.distance_driven}
+                                "distance_driven": obs.distance_driven,
+                                "success": bool(self.world.judge.goal.reached), "reason": self._reason}
         if self._label:
             assert self._expert is not None
             c = self._expert.act(obs)
@@ -178,7 +194,8 @@ class YawilDriveEnv(gym.Env[dict[str, Any], np.ndarray]):
         episode_seed = int(self.np_random.integers(0, 2**31 - 1))
         obs = self.world.reset(self.scenario, episode_seed)
         self._last = obs
-        self._progress = self.world.judge.progress.progress
+        self._progress_hint, self._reason = None, None
+        self._progress = self._route_s(obs)
         self._hint = None
         self._label = label
         if label:
@@ -195,14 +212,24 @@ class YawilDriveEnv(gym.Env[dict[str, Any], np.ndarray]):
         a = np.asarray(action, dtype=np.float64).reshape(-1)
         if a.shape != (3,):
             raise ValueError(f"action must be (steer, throttle, brake), got shape {np.shape(action)}")
+        if not np.isfinite(a).all():
+            raise ValueError(f"action must be finite (steer, throttle, brake), got {a.tolist()}")
+        a = np.clip(a, self.action_space.low, self.action_space.high)
         obs = self.world.step(Control(float(a[0]), float(a[1]), float(a[2])))
         self._last = obs
-        progress = self.world.judge.progress.progress
+        progress = self._route_s(obs)
         reward = progress - self._progress - sum(PENALTIES.get(e.kind, 0.0) for e in obs.events)
         self._progress = progress
-        kinds = {e.kind for e in obs.events}
-        terminated = self.world.judge.goal.reached or (self.terminate_on_collision and EventKind.COLLISION in kinds)
+        collision = next((e for e in obs.events if e.kind == EventKind.COLLISION), None)
+        terminated = self.world.judge.goal.reached or (self.terminate_on_collision and collision is not None)
         truncated = self.world.judge.timeout.expired and not terminated
+        if self._reason is None:
+            if self.world.judge.goal.reached:
+                self._reason = "goal"
+            elif collision is not None and terminated:
+                self._reason = f"collision_{collision.other_type or 'static'}"
+            elif truncated:
+                self._reason = "timeout"
         if self.render_mode is not None:
             self._trail.append((obs.pose.x, obs.pose.y))
         return self._convert(obs), float(reward), bool(terminated), bool(truncated), self._info(obs)

@@ -388,6 +388,20 @@ class EpisodeDriver:
             self._worlds.pop(slot).close()
 
 
+def drive_episode(agent: DrivingAgent, episode: Episode, camera: bool = True,
+                  world: World | None = None) -> dict[str, Any]:
+    """Drive one benchmark episode with any agent (`reset`/`act`: a `yawil.agent.load_agent`, the expert, your own)
+    exactly as `yawil bench` drives it, and return its record: success, reason, collisions, km driven, lane and
+    red-light counts, the trajectory (docs/benchmark.md). `world`: reuse one (default: a new embedded world)."""
+    drive = agent.drive.as_dict() if hasattr(agent, "drive") else {}
+    engine = getattr(getattr(agent, "engine", None), "name", "auto")
+    name = str(getattr(agent, "checkpoint_path", None) or getattr(agent, "name", "agent"))
+    spec = AgentSpec(name, engine=engine, **{k: v for k, v in drive.items() if k in AgentSpec.__dataclass_fields__})
+    driver = EpisodeDriver(spec, camera, world_factory=(lambda: world) if world is not None else None,
+                           agent_factory=lambda seed: agent)
+    return driver.drive_one(episode)
+
+
 class _Recorder:
     """Frames of one episode: camera image (if any) beside a bird's-eye view, written as MP4 (GIF fallback).
 

@@ -68,7 +68,7 @@ class DaggerConfig:
     batch_size: int = 64
     lr: float = 1e-3
     # fine-tuning rounds' initial rate (None: lr). Why: at 1e-3 a fresh Adam's first steps on the aggregate
-    # broke a good round-0 policy's steering (0 of 100 after round 1; docs/experiments.md, fourth session)
+    # broke a good round-0 policy's steering (0 of 100 after round 1; docs/experiments.md, 2026-12-02)
     round_lr: float | None = None
     workers: int = 2  # collection processes
     executor: str = "local"  # where they run (yawil.executor): changes no result, so a resume may change it

@@ -304,3 +304,32 @@ def test_a_zoo_model_drives_as_its_card_says_unless_told_otherwise() -> None:
     assert plain.drive == DriveSettings()
     with pytest.raises(ValueError, match="unknown drive option"):
         Agent.from_checkpoint("zoo:yilratt-dagger-ego", engine="torch", speed_controll="stop")
+
+
+def test_load_agent_gym_action_and_drive_episode(tiny_checkpoint: Any) -> None:
+    """The public entry points: load_agent sets threads and builds the agent; gym_action drives a gym env with the
+    agent's own guidance; drive_episode returns the benchmark's record of one episode."""
+    from yawil.agent import gym_action, load_agent
+    from yawil.bench.runner import drive_episode
+    from yawil.bench.suites import episodes
+    from yawil.expert import Expert
+    from yawil.gym_env import YawilDriveEnv
+
+    path, _ = tiny_checkpoint("yaw-guided", guidance=GC, spread=True, guidance_dim=K, dropout=0.0)
+    before = torch.get_num_threads()
+    agent = load_agent(path, threads=1, engine="torch")
+    assert torch.get_num_threads() == 1
+    torch.set_num_threads(before)
+    with pytest.raises(ValueError, match="threads=0"):
+        load_agent(path, threads=0)
+    env = YawilDriveEnv(town="square", camera=True)
+    env.reset(seed=0)
+    action = gym_action(agent, env)
+    assert action.shape == (3,) and env.action_space.contains(action)
+    env.step(action)
+    env.close()
+    with pytest.raises(ValueError, match="after reset"):
+        gym_action(agent, YawilDriveEnv(town="square", camera=False))
+    ep = episodes("square", routes="2", seeds=1)[0]
+    record = drive_episode(Expert(), ep, camera=False)
+    assert record["success"] is True and record["reason"] is None and record["km_driven"] > 0.05

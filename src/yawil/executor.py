@@ -97,10 +97,10 @@ def _is_address(text: str) -> bool:
 def add_executor_arguments(p: argparse.ArgumentParser | argparse._ArgumentGroup) -> None:
     """--executor and --ray-address, the same on every command that runs episodes in parallel."""
     p.add_argument("--executor", choices=EXECUTORS, default="local",
-                   help="where the --workers run: local (default) processes on this machine, or ray actors "
+                   help="where the --workers run: local (default) processes on the local machine, or ray actors "
                         f"(needs {RAY_INSTALL}); the results are the same either way")
     p.add_argument("--ray-address", default=None, metavar="auto|HOST:PORT",
-                   help="--executor ray: the cluster to join (auto: the one `ray start` made on this machine); "
+                   help="--executor ray: the cluster to join (auto: the one `ray start` made on the local machine); "
                         "default: start a local Ray with one CPU per worker")
 
 

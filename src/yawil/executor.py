@@ -7,7 +7,7 @@ the results file). So the executor changes where episodes run, never what they g
 
 - `local`, one worker: tasks run in the calling process (no pickling: closures and test doubles work).
 - `local`, N workers: N spawned processes (concurrent.futures); progress reports come back over a queue.
-- `ray`: one Ray actor per worker, on this machine (a local Ray sized to the workers) or on a cluster
+- `ray`: one Ray actor per worker, on the local machine (a local Ray sized to the workers) or on a cluster
   (`--ray-address auto` or HOST:PORT). A task goes to a free actor only, so at most N run at once. An actor
   that dies (killed, out of memory, its node lost) is replaced and its task is handed to the next free actor;
   its result never reached the caller, so nothing was written for it: no episode lost, none twice.
@@ -212,7 +212,7 @@ def _local_run(task: Any) -> Any:
 
 
 class LocalExecutor(Executor):
-    """N spawned processes on this machine; each takes a rank (0..N-1) from a queue when it starts."""
+    """N spawned processes on the local machine; each takes a rank (0..N-1) from a queue when it starts."""
 
     def __init__(self, workers: int, factory: WorkerFactory, on_report: Report | None = None) -> None:
         from multiprocessing import get_context

@@ -127,13 +127,13 @@ class AgentSpec:
         return self
 
     def engine_label(self) -> str:
-        """engine-precision of a learned agent on this machine (e.g. openvino-bf16; yawil.policy.engine)."""
+        """engine-precision of a learned agent on the machine it runs on (e.g. openvino-bf16; yawil.policy.engine)."""
         import torch
 
         from yawil.policy.engine import resolve_engine
         from yawil.policy.runtime import Runtime, resolve_runtime
 
-        # on CUDA the precision resolve_runtime picks (fp16), named without asking for a device this machine may lack
+        # on CUDA the precision resolve_runtime picks (fp16), named without asking for a device the local machine may lack
         runtime = Runtime(torch.device("cuda"), "fp16", True) if self.device == "cuda" else resolve_runtime(self.device)
         return "-".join(resolve_engine(self.engine, runtime))
 

@@ -162,7 +162,7 @@ class CollectWorker:
         import tempfile
 
         # the usual writer, in a dataset of its own that lives as long as the episode, named for this process so
-        # that what a killed worker leaves is removed by the next episode on this machine
+        # that what a killed worker leaves is removed by the next episode on the same machine
         _remove_dead_scratch(Path(tempfile.gettempdir()))
         with tempfile.TemporaryDirectory(prefix=f"{SCRATCH_PREFIX}{os.getpid()}-") as scratch:
             result = self._drive(plan, DatasetWriter(scratch, self.config))

@@ -53,7 +53,7 @@ class ReproduceProfile:
     max_steps: int | None = None  # per model, besides the epochs (the quick profile's budget)
 
     def workers(self, n: int) -> int:
-        """A worker count of the profile: 0 means one per core of this machine."""
+        """A worker count of the profile: 0 means one per core of the machine it runs on."""
         return n or (os.cpu_count() or 1)
 
 

@@ -6,6 +6,7 @@ from __future__ import annotations
 import contextlib
 import io
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -65,3 +66,19 @@ def test_the_program_exits_2_for_every_refusal(tmp_path: Path) -> None:
         done = subprocess.run([sys.executable, "-m", "yawil.cli", *argv, *(["--out", str(tmp_path / "b")]
                                if argv[0] == "bench" else [])], capture_output=True, text=True, timeout=120)
         assert done.returncode == 2 and text in done.stderr and "Traceback" not in done.stderr, done.stderr
+
+
+def test_select_reads_every_candidate_before_driving_any(tmp_path: Path, tiny_checkpoint: Any) -> None:
+    """A bad last candidate is refused in seconds, before the first is driven (it was reached after hours)."""
+    import time
+
+    good = tiny_checkpoint("yaw-guided", guidance_dim=15).path
+    (tmp_path / "bad").mkdir()
+    (tmp_path / "bad" / "last.pt").write_text("not a checkpoint")
+    t0 = time.perf_counter()
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+        rc = main(["select", str(good), str(tmp_path / "bad" / "last.pt"), "--out", str(tmp_path / "sel"),
+                   "--no-progress"])
+    assert rc == 2 and "not a readable torch checkpoint" in err.getvalue()
+    assert time.perf_counter() - t0 < 20 and not any((tmp_path / "sel").glob("*/episodes.jsonl"))

@@ -45,3 +45,17 @@ def test_video_written_whole_with_the_usual_mode(tmp_path: Path) -> None:
         assert [p.name for p in tmp_path.iterdir()] == ["v.gif"]
     finally:
         os.umask(old)
+
+
+def test_a_failed_atomic_write_names_the_file_asked_for(tmp_path: Path) -> None:
+    """An OSError while writing names the target, never the temporary file (`.plot.png.x1y2.tmp.png`)."""
+    import errno
+
+    from yawil.fileio import atomic_file
+
+    target = tmp_path / "plot.png"
+    with pytest.raises(OSError, match=r"writing .*plot\.png failed: No space left") as err, atomic_path(target) as tmp:
+        raise OSError(errno.ENOSPC, os.strerror(errno.ENOSPC), str(tmp))
+    assert err.value.errno == errno.ENOSPC and ".tmp" not in str(err.value) and list(tmp_path.iterdir()) == []
+    with pytest.raises(FileNotFoundError, match=r"writing .*data\.json failed"), atomic_file(tmp_path / "data.json"):
+        raise FileNotFoundError(errno.ENOENT, "No such file or directory", "/x/.data.json.123.tmp")

@@ -56,6 +56,10 @@ def atomic_file(path: str | os.PathLike[str]) -> Iterator[BinaryIO]:
             f.flush()
             os.fsync(f.fileno())
         os.replace(tmp, path)
+    except OSError as err:  # named by the file the user asked for, not the temporary one
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise _named(err, path) from None
     except BaseException:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
@@ -77,10 +81,19 @@ def atomic_path(path: str | os.PathLike[str]) -> Iterator[Path]:
         yield tmp
         os.chmod(tmp, default_file_mode())  # mkstemp makes 0600
         os.replace(tmp, path)
+    except OSError as err:
+        with contextlib.suppress(OSError):
+            os.unlink(tmp)
+        raise _named(err, path) from None
     except BaseException:
         with contextlib.suppress(OSError):
             os.unlink(tmp)
         raise
+
+
+def _named(err: OSError, path: Path) -> OSError:
+    """The error of a failed atomic write, naming `path` (the temporary file's name means nothing to a user)."""
+    return OSError(err.errno, f"writing {path} failed: {err.strerror or err}")
 
 
 def write_atomic(path: str | os.PathLike[str], data: str | bytes) -> Path:

@@ -158,3 +158,31 @@ def test_every_shipped_model_gives_its_cards_outputs(name: str) -> None:
     for field in ("commands", "commit", "data", "machine", "wall_s", "eval100", "drive"):
         assert field in card, f"zoo:{name}: its card lacks {field!r}"
     assert np.isfinite(card["probe"]["bf16_max_diff_from_fp32"])
+
+
+def test_the_onnx_example_drives_as_the_torch_agent_on_recorded_frames(packed: Path, tmp_path: Path) -> None:
+    """examples/onnx_drive.py (ONNX Runtime, preprocessing from the metadata alone, the card's drive settings from
+    the metadata) gives the torch agent's controls on the probe frames, frame after frame of one episode."""
+    import importlib.util
+
+    from yawil.agent import Agent
+    from yawil.learn.export import export_onnx
+    from yawil.zoo.pack import read_probe
+
+    spec = importlib.util.spec_from_file_location("onnx_drive", Path(__file__).parents[1] / "examples" / "onnx_drive.py")
+    assert spec is not None and spec.loader is not None
+    example = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(example)
+    onnx_path = export_onnx("zoo:tiny", tmp_path / "tiny.onnx")
+    driver = example.OnnxDriver(str(onnx_path))
+    assert (driver.drive.speed_control, driver.drive.stop_release) == ("stop", 10.0)  # from the card, via metadata
+    agent = Agent.from_checkpoint("zoo:tiny", precision="fp32", channels_last="off", engine="torch")
+    probe = read_probe(zoo.ZOO_DIR / "tiny")
+    for i in range(len(probe["speed"])):
+        speed = float(probe["speed"][i])
+        x = agent.spec.from_frame(probe["image"][i], speed, probe["guidance"][i], int(probe["command"][i]))
+        out = agent.engine.run(x)
+        d = agent.drive.decide(out.actions[0], out.aux[0], agent._speed_of, agent.states[0], max(speed, 0.0))
+        want = agent.drive.post(d.actions, speed)
+        got = driver.step(probe["image"][i], speed, probe["guidance"][i], int(probe["command"][i]))
+        assert np.allclose([got.steer, got.throttle, got.brake], [want.steer, want.throttle, want.brake], atol=1e-4)

@@ -6,6 +6,8 @@ import math
 
 import numpy as np
 import pytest
+from hypothesis import given
+from hypothesis import strategies as st
 
 from yawil.bench.metrics import (
     EpisodeTracker,
@@ -215,3 +217,28 @@ def test_rear_end_is_a_vehicle_ahead_heading_our_way() -> None:
     assert not is_rear_end(obs(4.0, 0.0, math.pi), 7)  # type: ignore[arg-type]  # head-on
     assert not is_rear_end(obs(4.0, 0.0, math.pi / 2), 7)  # type: ignore[arg-type]  # crossing
     assert not is_rear_end(obs(4.0, 0.0, 0.0), 8)  # type: ignore[arg-type]  # unknown id
+
+
+def test_one_seed_shows_no_spread() -> None:
+    from yawil.bench.metrics import mean_std
+
+    assert mean_std([34.0]).format() == "34" and mean_std([100 / 3]).format() == "33.33"  # not "34.00 ± 0.00"
+
+
+@given(st.integers(0, 500), st.integers(1, 500))
+def test_wilson_interval_holds_the_rate_inside_0_100_and_narrows(k: int, n: int) -> None:
+    from yawil.bench.metrics import wilson_interval
+
+    k = min(k, n)
+    lo, hi = wilson_interval(k, n)
+    assert 0.0 <= lo <= 100 * k / n <= hi <= 100.0
+    lo4, hi4 = wilson_interval(4 * k, 4 * n)
+    assert hi4 - lo4 < hi - lo + 1e-9
+
+
+def test_wilson_interval_known_values() -> None:
+    from yawil.bench.metrics import wilson_interval
+
+    lo, hi = wilson_interval(17, 50)  # the zoo YILRatt on the dense cell
+    assert (round(lo, 1), round(hi, 1)) == (22.4, 47.8)
+    assert wilson_interval(0, 10)[0] == 0.0 and wilson_interval(10, 10)[1] == 100.0

@@ -64,8 +64,9 @@ def test_tables_and_files(tmp_path: Path) -> None:
         "Training Conditions: expert", "Training Conditions: yilratt",
         "New Town02 & Weather: expert", "New Town02 & Weather: yilratt",
     ]
-    assert t3.rows[0] == ["Straight", "100", "75", "100", "75"]  # best of 5 seeds
-    assert t3.rows[1][0] == "Nav. (Dense)" and t3.rows[1][1] == "75.00 ± 20.41"
+    # best of 5 seeds, then the Wilson interval of the pooled episodes: 19 of 20 and 9 of 20
+    assert t3.rows[0] == ["Straight", "100 [76-99]", "75 [26-66]", "100 [76-99]", "75 [26-66]"]
+    assert t3.rows[1][0] == "Nav. (Dense)" and t3.rows[1][1] == "75.00 ± 20.41 [47-91]"  # 9 of 12
     t4 = violations_table(sets)
     lane_dense = [r for r in t4.rows if r[0].startswith("Lane") and r[1] == "Nav. (Dense)"][0]
     assert lane_dense[2] == "2.00 ± 0.00"  # 1 violation per 0.5 km, successful episodes only

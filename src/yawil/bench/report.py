@@ -18,7 +18,14 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
-from yawil.bench.metrics import FAILURE_REASONS, Stat, failure_counts, task_success, task_violations
+from yawil.bench.metrics import (
+    FAILURE_REASONS,
+    Stat,
+    failure_counts,
+    task_success,
+    task_violations,
+    wilson_interval,
+)
 from yawil.bench.records import RUN_FILE, iter_results
 from yawil.bench.suites import CONDITIONS, TASKS
 from yawil.fileio import write_atomic
@@ -125,13 +132,17 @@ def success_table(sets: Sequence[ResultSet]) -> Table:
                 continue
             stat = task_success(recs, task.dynamic)
             extra = "" if stat.n_seeds == task.default_seeds else f" ({stat.n_seeds} seed{'s' * (stat.n_seeds > 1)})"
-            row.append(stat.format(2) + extra)
+            ok = sum(bool(r["success"]) for r in recs)
+            lo, hi = wilson_interval(ok, len(recs))
+            row.append(f"{stat.format(2)} [{lo:.0f}-{hi:.0f}]{extra}")
             records.append({"task": t, "condition": c, "agent": rs.label,
-                            "over_seeds": "mean" if task.dynamic else "best", "success_pct": _stat(stat)})
+                            "over_seeds": "mean" if task.dynamic else "best", "success_pct": _stat(stat),
+                            "episodes": len(recs), "successes": ok, "wilson95_pct": [round(lo, 2), round(hi, 2)]})
         rows.append(row)
     note = (
         "Success rate in %. Static tasks: best of 5 seeds; dynamic tasks: mean ± population std over 3 seeds; "
-        "a cell with another number of seeds says so. —: not run."
+        "a cell with another number of seeds says so (one seed: no ±). [lo-hi]: the 95 % Wilson interval of the "
+        "success rate over all the cell's episodes, seeds pooled. —: not run."
     )
     return Table("Table III: navigation success rate (%)", _header(["Task"], cols), rows, note, "success", records)
 
@@ -284,11 +295,15 @@ def success_plot(sets: Sequence[ResultSet]) -> bytes:
                 if recs:
                     st = task_success(recs, TASKS[t].dynamic)
                     vals.append(st.value)
-                    errs.append(st.std or 0.0)
-                else:
-                    vals.append(0.0)
+                    errs.append(st.std if st.std is not None and st.n_seeds > 1 else 0.0)
+                else:  # not run: no bar (a 0 % bar would read as a result), a mark instead
+                    vals.append(math.nan)
                     errs.append(0.0)
-            ax.bar(x + (i - (len(sets) - 1) / 2) * width, vals, width, yerr=errs, capsize=3, label=rs.label)
+            xs = x + (i - (len(sets) - 1) / 2) * width
+            ax.bar(xs, np.nan_to_num(vals), width, yerr=errs, capsize=3, label=rs.label)
+            for xi, v in zip(xs, vals, strict=True):
+                if math.isnan(v):
+                    ax.text(xi, 2, "not run", rotation=90, ha="center", va="bottom", fontsize=6, color="0.4")
         ax.set_xticks(x, [TASKS[t].title for t in tasks], rotation=20, ha="right", fontsize=8)
         ax.set_ylim(0, 105)
         ax.set_ylabel("success rate (%)")

@@ -57,6 +57,8 @@ PENALTIES = {EventKind.COLLISION: 50.0, EventKind.LANE_INVASION: 5.0, EventKind.
 RENDER_MODES: tuple[str, ...] = ("rgb_array",)
 RESET_OPTIONS: tuple[str, ...] = ("expert_action",)
 COORD_LIMIT = 1e5  # metres: bound of the map-frame Boxes (pose, route)
+ACTION_LOW = np.array([-1.0, 0.0, 0.0], dtype=np.float32)  # steer, throttle, brake (CARLA's ranges)
+ACTION_HIGH = np.array([1.0, 1.0, 1.0], dtype=np.float32)
 
 
 def _render_mode_error(mode: object) -> ValueError:
@@ -130,8 +132,7 @@ class YawilDriveEnv(gym.Env[dict[str, Any], np.ndarray]):
         if camera:
             obs_spaces["image"] = spaces.Box(0, 255, shape=(88, 200, 3), dtype=np.uint8)
         self.observation_space = spaces.Dict(obs_spaces)
-        self.action_space = spaces.Box(np.array([-1.0, 0.0, 0.0], dtype=np.float32),
-                                       np.array([1.0, 1.0, 1.0], dtype=np.float32), dtype=np.float32)
+        self.action_space = spaces.Box(ACTION_LOW, ACTION_HIGH, dtype=np.float32)
         self._last: Observation | None = None
         self._progress = 0.0
         self._progress_hint: int | None = None  # route segment of the last progress projection
@@ -214,7 +215,7 @@ class YawilDriveEnv(gym.Env[dict[str, Any], np.ndarray]):
             raise ValueError(f"action must be (steer, throttle, brake), got shape {np.shape(action)}")
         if not np.isfinite(a).all():
             raise ValueError(f"action must be finite (steer, throttle, brake), got {a.tolist()}")
-        a = np.clip(a, self.action_space.low, self.action_space.high)
+        a = np.clip(a, ACTION_LOW, ACTION_HIGH)
         obs = self.world.step(Control(float(a[0]), float(a[1]), float(a[2])))
         self._last = obs
         progress = self._route_s(obs)

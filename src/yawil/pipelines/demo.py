@@ -279,6 +279,14 @@ def guard(out: Path, budget: DemoBudget, card: dict[str, Any]) -> list[tuple[str
     return rows
 
 
+def _counts(results: Path) -> tuple[int, int]:
+    """(successes, episodes) of a results folder."""
+    from yawil.bench.records import read_records
+
+    recs = read_records(results / "episodes.jsonl")
+    return sum(bool(r["success"]) for r in recs), len(recs)
+
+
 def data_text(data: Any) -> str:
     if not isinstance(data, dict):
         return str(data)
@@ -289,6 +297,7 @@ def write_demo_report(out: Path, budget: DemoBudget, timings: dict[str, float], 
                       card: dict[str, Any], video_name: str, wall_s: float) -> Path:
     from yawil.bench.report import write_report
     from yawil.data.stats import write_stats
+    from yawil.zoo import drive_flags
 
     first = f"{budget.tasks[-1]}/{int(budget.routes.split(':')[0] or 0)}/0"  # an episode both drove (Figure 6)
     names = ["expert", budget.baseline, f"zoo-{budget.zoo_model}", "yilratt"]
@@ -298,37 +307,58 @@ def write_demo_report(out: Path, budget: DemoBudget, timings: dict[str, float], 
     stats_png = write_stats(out / "data" / "town01", out / "data_stats.png")
     bench_md = bench["report.md"].read_text(encoding="utf-8").split("\n", 1)[1]
     bench_md = re.sub(r"\]\(([^)/]+\.png)\)", r"](bench_report/\1)", bench_md)  # its pictures live there
-    pictures = [("Dataset (the paper's Figure 7)", stats_png),
-                (f"Loss curve ({budget.baseline})", out / budget.baseline / "loss.png"),
-                ("Loss curve (YILRatt trained here)", out / "yilratt" / "loss.png"),
-                (f"Attention heat maps of zoo:{budget.zoo_model} on dataset frames (Figure 8)", out / "explain" / "grid.png")]  # fmt: skip
-    budget_rows = "\n".join(f"| {k} | {v} |" for k, v in asdict(budget).items())
+    pictures = [("Dataset (the paper's Figure 7)", stats_png,
+                 "Frames per road option and weather, and the steer, throttle and brake histograms of the data."),
+                (f"Loss curve ({budget.baseline})", out / budget.baseline / "loss.png",
+                 "Training and validation loss per epoch of the baseline trained in this run (log scale)."),
+                ("Loss curve (YILRatt trained here)", out / "yilratt" / "loss.png",
+                 "Training and validation loss per epoch of the YILRatt trained in this run (log scale)."),
+                (f"Attention heat maps of zoo:{budget.zoo_model} on dataset frames (Figure 8)",
+                 out / "explain" / "grid.png",
+                 "One row per frame: the camera, then the attention of each of YILRatt's attention layers over it "
+                 "(brighter: more weight). Each row's label gives the network's outputs on that frame: s = steer, "
+                 "t = throttle, b = brake, v = predicted speed (m/s).")]  # fmt: skip
+    # the budget rows of what ran: the YILRatt training fields only when one was trained here
+    skipped = () if budget.max_steps else ("model", "batch_size", "lr", "lr_step_epochs", "epochs", "max_steps")
+    shown = {k: v for k, v in asdict(budget).items() if k not in skipped}
+    budget_rows = "\n".join(f"| {k} | {v} |" for k, v in shown.items())
     time_rows = "\n".join(f"| {k} | {v:.0f} |" for k, v in timings.items())
     capped = [n for n, i in train_info.items() if i.get("stopped_by") == "max_minutes"]
     ev = card.get("eval100") or {}
-    provenance = (
-        f"From the zoo: **zoo:{budget.zoo_model}** ({card.get('model_name')}, {card.get('steps_total', card.get('step'))} "
-        f"steps; commit {str(card.get('commit', '?'))[:10]}; data {data_text(card.get('data'))}; eval100 "
-        f"{ev.get('successes', '?')}/{ev.get('episodes', '?')}; trained by `{((card.get('commands') or ['?']) * 2)[1]}`; "
-        f"driven with {json.dumps(card.get('drive') or {})}). Trained in this run: "
-        + ", ".join(f"**{n}** ({i.get('steps')} steps, {i.get('epochs')} epochs, stopped by {i.get('stopped_by')})"
-                    for n, i in train_info.items()) + ".")
+    zoo_line = (f"zoo:{budget.zoo_model}: {card.get('model_name')}, {card.get('steps_total', card.get('step'))} steps, "
+                f"commit {str(card.get('commit', '?'))[:10]}, data {data_text(card.get('data'))}, eval100 "
+                f"{ev.get('successes', '?')}/{ev.get('episodes', '?')}, driven with "
+                f"{drive_flags(card.get('drive') or {}) or 'its own throttle and brake'}. Made by these commands:")
+    commands = [str(c) for c in card.get("commands") or []]
+    trained = ", ".join(f"{n} ({i.get('steps')} steps, {i.get('epochs')} epochs, stopped by {i.get('stopped_by')})"
+                        for n, i in train_info.items())
+    provenance = (f"From the zoo: {zoo_line}\n\n" + "\n".join(f"    {c}" for c in commands)
+                  + f"\n\nTrained in this run: {trained}.")
     checks = guard(out, budget, card)
+    summary_rows = [("expert", "the privileged expert", *_counts(out / "results" / "expert"), "")] + [
+        (label, "zoo" if label.startswith("zoo-") else "trained in this run", ok, n,
+         "ok" if fine else "BELOW EXPECTATION") for label, ok, n, _, fine in checks]
     guard_line = "Guard: " + "; ".join(
         f"{label} drove {ok}/{n} " + (f"(expected at least {want}): {'ok' if fine else 'BELOW EXPECTATION'}"
                                       if want is not None else "(its card has no figure for these episodes)")
         for label, ok, n, want, fine in checks) + "."
+    intro = ("The whole loop at a small scale on the embedded simulator: expert data in town01 (training weathers, "
+             f"the {demo_guidance(card).reference!r} yaw reference of the zoo model's data), "
+             f"the small {budget.baseline} baseline trained on it, the expert, that baseline and the zoo's YILRatt "
+             "benchmarked on a subset of routes in both conditions, the zoo YILRatt's attention heat maps. These "
+             "are honest small-budget numbers, not the paper's: see the budget below.")
+    cap_note = (f"Stopped by the --max-minutes cap: {', '.join(capped)} (its figures depend on the machine's "
+                "speed)." if capped else "")
     md = [
         "# yawil demo report",
         "",
-        "The whole loop at a small scale on the embedded simulator: expert data in town01 (training weathers, "
-        f"the {demo_guidance(card).reference!r} yaw reference of the zoo model's data), "
-        f"the small {budget.baseline} baseline trained on it, the expert, that baseline and the zoo's YILRatt "
-        "benchmarked on a subset of routes in both conditions, the zoo YILRatt's attention heat maps. These are "
-        "honest small-budget numbers, not the paper's: see the budget below.",
+        "| agent | where it comes from | successes | episodes | guard |",
+        "| --- | --- | --- | --- | --- |",
+        *[f"| {a} | {src} | {ok} | {n} | {g} |" for a, src, ok, n, g in summary_rows],
         "",
-        provenance + (f" **Stopped by the --max-minutes cap: {', '.join(capped)}** (its figures depend on this "
-                      "machine's speed)." if capped else ""),
+        intro,
+        "",
+        provenance + (f" **{cap_note}**" if cap_note else ""),
         "",
         guard_line,
         "",
@@ -348,31 +378,37 @@ def write_demo_report(out: Path, budget: DemoBudget, timings: dict[str, float], 
         f"Episode video with heat maps: [explain/{video_name}](explain/{video_name})",
         "",
     ]
-    for title, path in pictures:
+    for title, path, caption in pictures:
         if Path(path).is_file():
-            md.append(f"![{title}]({Path(path).relative_to(out)})\n")
+            md.append(f"![{title}]({Path(path).relative_to(out)})\n\n*{caption}*\n")
     _write(out / "report.md", "\n".join(md))
 
+    e = html.escape
     bench_html = bench["report.html"].read_text(encoding="utf-8")
     body = bench_html.split("<body>", 1)[1].rsplit("</body>", 1)[0].replace("<h1>Benchmark report</h1>", "<h2>Benchmark</h2>")
     style = bench_html.split("<style>", 1)[1].split("</style>", 1)[0] if "<style>" in bench_html else ""
     parts = [
         "<h1>yawil demo report</h1>",
-        f"<p>{html.escape(md[2])}</p>",
-        f"<p>{html.escape(md[4].replace('**', ''))}</p>",
-        f"<p>{html.escape(md[6])}</p>",
+        "<table><tr><th>agent</th><th>where it comes from</th><th>successes</th><th>episodes</th><th>guard</th></tr>"
+        + "".join(f"<tr><td>{e(a)}</td><td>{e(src)}</td><td>{ok}</td><td>{n}</td><td>{e(g)}</td></tr>"
+                  for a, src, ok, n, g in summary_rows) + "</table>",
+        f"<p>{e(intro)}</p>",
+        f"<p>From the zoo: {e(zoo_line)}</p><pre>{e(chr(10).join(commands))}</pre>",
+        f"<p>Trained in this run: {e(trained)}.{(' <strong>' + e(cap_note) + '</strong>') if cap_note else ''}</p>",
+        f"<p>{e(guard_line)}</p>",
         body,
         "<h2>Budget</h2><table><tr><th>setting</th><th>value</th></tr>"
-        + "".join(f"<tr><td>{html.escape(k)}</td><td>{html.escape(str(v))}</td></tr>" for k, v in asdict(budget).items())
+        + "".join(f"<tr><td>{e(k)}</td><td>{e(str(v))}</td></tr>" for k, v in shown.items())
         + "</table>",
         "<h2>Wall time per stage (seconds)</h2><table><tr><th>stage</th><th>seconds</th></tr>"
-        + "".join(f"<tr><td>{k}</td><td>{v:.0f}</td></tr>" for k, v in timings.items())
+        + "".join(f"<tr><td>{e(k)}</td><td>{v:.0f}</td></tr>" for k, v in timings.items())
         + "</table>",
     ]
-    for title, path in pictures:
+    for title, path, caption in pictures:
         if Path(path).is_file():
             b64 = base64.b64encode(Path(path).read_bytes()).decode("ascii")
-            parts.append(f"<h3>{html.escape(title)}</h3><img alt='{html.escape(title)}' src='data:image/png;base64,{b64}'>")
+            parts.append(f"<figure><h3>{e(title)}</h3><img alt='{e(title)}' src='data:image/png;base64,{b64}'>"
+                         f"<figcaption>{e(caption)}</figcaption></figure>")
     video = out / "explain" / video_name
     if video.is_file():
         mime = "video/mp4" if video.suffix == ".mp4" else "image/gif"

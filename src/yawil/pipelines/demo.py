@@ -317,7 +317,7 @@ def write_demo_report(out: Path, budget: DemoBudget, timings: dict[str, float], 
                  out / "explain" / "grid.png",
                  "One row per frame: the camera, then the attention of each of YILRatt's attention layers over it "
                  "(brighter: more weight). Each row's label gives the network's outputs on that frame: s = steer, "
-                 "t = throttle, b = brake, v = predicted speed (m/s).")]  # fmt: skip
+                 "t = throttle, b = brake, v = predicted speed (km/h).")]  # fmt: skip
     # the budget rows of what ran: the YILRatt training fields only when one was trained here
     skipped = () if budget.max_steps else ("model", "batch_size", "lr", "lr_step_epochs", "epochs", "max_steps")
     shown = {k: v for k, v in asdict(budget).items() if k not in skipped}

@@ -20,7 +20,11 @@ def tree(tmp_path: Path) -> Path:
     data = tmp_path / "data"
     data.mkdir()
     (data / "manifest.json").write_text('{"episodes": []}')
+    (data / "episodes").mkdir()
     (data / "ep_000000.h5").write_bytes(b"episode")
+    (tmp_path / "web").mkdir()  # a user's folder that happens to hold a manifest.json is no dataset
+    (tmp_path / "web" / "manifest.json").write_text("{}")
+    (tmp_path / "web" / "app.js").write_text("js")
     run = tmp_path / "run"
     (run / "sub").mkdir(parents=True)
     (run / ".yawil.lock").write_text("")
@@ -74,7 +78,8 @@ def test_a_file_option_never_replaces_a_file_it_did_not_make(tree: Path, argv: l
 def test_the_rule_itself(tree: Path) -> None:
     assert owning_folder(tree / "data" / "x.png") == tree / "data"
     assert owning_folder(tree / "run" / "sub" / "x.png") == tree / "run"  # a folder inside a run is the run's
-    assert owning_folder(tree / "mine.csv") is None
+    assert owning_folder(tree / "mine.csv") is None and owning_folder(tree / "web" / "app.js") is None
+    assert check_output_file(tree / "web" / "app.js", "--out", force=True) == tree / "web" / "app.js"
     assert check_output_file(tree / "data" / "stats.png", "--out") == tree / "data" / "stats.png"  # a new file
     (tree / "data" / "stats.png").write_bytes(b"png")
     check_output_file(tree / "data" / "stats.png", "--out", own=("stats.png",))  # the command's own product

@@ -109,17 +109,23 @@ def write_json_atomic(path: str | os.PathLike[str], obj: Any) -> None:
     write_atomic(path, json.dumps(obj, indent=2, sort_keys=True) + "\n")
 
 
-# A folder holding one of these belongs to a yawil stage (a dataset, a training or DAgger run, a results folder,
-# a zoo model): its files are that stage's, and no file option of another command replaces them.
-OWNED_MARKERS = (".yawil.lock", "manifest.json", "card.json")
+# A folder holding one of these belongs to a yawil stage: its files are that stage's, and no file option of
+# another command replaces them. Each marker with the file that must stand beside it (None: alone), so that a
+# user's folder that happens to hold a manifest.json is not taken for a dataset.
+OWNED_MARKERS: dict[str, str | None] = {
+    ".yawil.lock": None,  # a training or DAgger run, a results folder, a dataset being written (yawil.locking)
+    "manifest.json": "episodes",  # a dataset
+    "card.json": "model.pt",  # a zoo model
+}
 
 
 def owning_folder(path: str | os.PathLike[str]) -> Path | None:
     """The nearest folder at or above `path`'s folder that a yawil stage owns (`OWNED_MARKERS`), or None."""
     folder = Path(path).absolute().parent
     for parent in (folder, *folder.parents):
-        if any((parent / marker).exists() for marker in OWNED_MARKERS):
-            return parent
+        for marker, beside in OWNED_MARKERS.items():
+            if (parent / marker).exists() and (beside is None or (parent / beside).exists()):
+                return parent
     return None
 
 

@@ -71,7 +71,7 @@ def test_a_file_option_never_replaces_a_file_it_did_not_make(tree: Path, argv: l
     assert rc == 2 and len(lines) == 1 and text in lines[0], lines
     assert kept.split("/")[-1] in lines[0]
     assert (tree / kept).read_bytes() == before
-    assert time.perf_counter() - t0 < 5.0  # refused before any work
+    assert time.perf_counter() - t0 < 30.0  # refused before any work (seconds of imports on a loaded machine)
     assert not (tree / "sel").exists()
 
 

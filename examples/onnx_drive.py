@@ -62,8 +62,8 @@ class OnnxDriver:
 
 
 def main(path: str, zoo_name: str) -> None:
+    from yawil.policy.probe import read_probe
     from yawil.zoo import zoo_dir
-    from yawil.zoo.pack import read_probe
 
     probe = read_probe(zoo_dir(zoo_name))  # recorded frames: camera, speed, raw guidance, road option
     driver = OnnxDriver(path)

@@ -167,7 +167,7 @@ def test_the_onnx_example_drives_as_the_torch_agent_on_recorded_frames(packed: P
 
     from yawil.agent import Agent
     from yawil.learn.export import export_onnx
-    from yawil.zoo.pack import read_probe
+    from yawil.policy.probe import read_probe
 
     spec = importlib.util.spec_from_file_location("onnx_drive", Path(__file__).parents[1] / "examples" / "onnx_drive.py")
     assert spec is not None and spec.loader is not None

@@ -153,21 +153,23 @@ class Agreement:
         return self.max_abs_diff <= tolerance * max(1.0, self.max_abs_ref)
 
 
-def real_frames(checkpoint: str, data: str | Path | None, count: int) -> dict[str, Any] | None:
-    """Model inputs of real camera frames through the agent's own input path: `data`'s frames, else a zoo model's
-    probe frames, else None."""
+def real_frames(checkpoint: str, model: Any, norm: Any, data: str | Path | None, count: int) -> dict[str, Any] | None:
+    """Model inputs of real camera frames through the agent's input contract (fp32 on the CPU): `data`'s frames,
+    else a zoo model's probe frames, else None."""
+    from yawil.policy.inputs import InputSpec
+    from yawil.policy.probe import read_probe, sample_probe
+    from yawil.policy.runtime import resolve_runtime
     from yawil.zoo import PREFIX, zoo_dir
-    from yawil.zoo.pack import probe_agent, read_probe, sample_probe
 
     if data is None and not checkpoint.startswith(PREFIX):
         return None
-    agent = probe_agent(checkpoint)
-    probe = sample_probe(Path(data), agent.kind, count) if data is not None else read_probe(
+    spec = InputSpec.of(model, norm, resolve_runtime("cpu", "fp32", "off"))
+    probe = sample_probe(Path(data), spec.kind, count) if data is not None else read_probe(
         zoo_dir(checkpoint[len(PREFIX):]))
     n = len(probe["speed"])
-    inputs = agent.spec.from_frames(list(probe["image"]), [float(s) for s in probe["speed"]],
-                                    [probe["guidance"][i] if agent.kind is not None else None for i in range(n)],
-                                    [int(probe["command"][i]) if agent.uses_command else None for i in range(n)])
+    inputs = spec.from_frames(list(probe["image"]), [float(s) for s in probe["speed"]],
+                              [probe["guidance"][i] if spec.kind is not None else None for i in range(n)],
+                              [int(probe["command"][i]) if spec.uses_command else None for i in range(n)])
     return dict(inputs.named())
 
 
@@ -179,15 +181,16 @@ def check_onnx(checkpoint: str | Path, onnx_path: str | Path, batch: int = 4, se
     import onnxruntime as ort
     import torch
 
-    from yawil.policy.checkpoint import load_checkpoint, model_from_checkpoint
+    from yawil.policy.checkpoint import Norm, load_checkpoint, model_from_checkpoint
     from yawil.policy.engine import graph_module, image_size
 
-    model = model_from_checkpoint(load_checkpoint(checkpoint)).eval()
+    ckpt = load_checkpoint(checkpoint)
+    model = model_from_checkpoint(ckpt).eval()
     names = input_names(model)
     session = ort.InferenceSession(str(onnx_path), providers=["CPUExecutionProvider"])
     outputs = [o.name for o in session.get_outputs()]
     batches = [("", example_inputs(model, batch, seed=seed, image_size=image_size(model)))]
-    real = real_frames(str(checkpoint), data, batch)
+    real = real_frames(str(checkpoint), model, Norm.from_dict(ckpt["norm"]), data, batch)
     if real is not None:
         batches.append(("real:", real))
     rows = []

@@ -13,6 +13,7 @@ import torch
 
 from yawil.fileio import write_json_atomic
 from yawil.policy.checkpoint import RESUME_KEYS, load_checkpoint, save_checkpoint
+from yawil.policy.probe import read_probe, sample_probe  # noqa: F401  (re-exported: pack's own names)
 from yawil.zoo import CARD, PROBE, WEIGHTS, ZOO_DIR, read_card, zoo_dir
 
 PROBE_TOLERANCE = 1e-3  # max |output - card| on the probe frames (float32 on any CPU agrees far closer)
@@ -73,32 +74,6 @@ def probe_outputs(agent: Any, probe: dict[str, np.ndarray]) -> dict[str, list[li
     if not rows["aux"]:
         del rows["aux"]
     return rows
-
-
-def sample_probe(data: Path, kind: str | None, count: int = 8, seed: int = 0) -> dict[str, np.ndarray]:
-    """`count` frames of a dataset, chosen with `seed`: camera, speed, the raw guidance of `kind`, command."""
-    from yawil.data.reader import open_episode
-    from yawil.policy.inputs import guidance_key
-
-    files = sorted(Path(data).rglob("*.h5"))
-    if not files:
-        raise ValueError(f"--data {data}: no episode files (*.h5)")
-    rng = np.random.default_rng(seed)
-    images, speeds, guides, commands = [], [], [], []
-    for fi in sorted(rng.choice(len(files), size=count, replace=len(files) < count).tolist()):
-        with open_episode(files[fi]) as ep:
-            rec = ep[int(rng.integers(len(ep)))]
-        images.append(rec.image)
-        speeds.append(rec.speed)
-        guides.append(getattr(rec, guidance_key(kind)) if kind else np.zeros(0, np.float32))
-        commands.append(int(rec.command))
-    return {"image": np.stack(images).astype(np.uint8), "speed": np.asarray(speeds, np.float32),
-            "guidance": np.stack(guides).astype(np.float32), "command": np.asarray(commands, np.int64)}
-
-
-def read_probe(folder: Path) -> dict[str, np.ndarray]:
-    with np.load(folder / PROBE) as z:
-        return {k: z[k] for k in ("image", "speed", "guidance", "command")}
 
 
 # The fields a card given to `pack` may hold (written by whoever trained the model); pack adds the rest.

@@ -333,21 +333,3 @@ def test_load_agent_gym_action_and_drive_episode(tiny_checkpoint: Any) -> None:
     ep = episodes("square", routes="2", seeds=1)[0]
     record = drive_episode(Expert(), ep, camera=False)
     assert record["success"] is True and record["reason"] is None and record["km_driven"] > 0.05
-
-
-def test_the_lead_gate_lets_the_class_stop_only_where_the_head_sees_a_lead() -> None:
-    """stop_lead_max: a firing lead-stop class with the predicted lead at 44 m (the traced false alarm) does not
-    stop the car; at 29 m (the traced real queue) it does; without the gate both stop."""
-    from yawil.data.schema import LEAD_RANGE
-    from yawil.policy.drive import DriveSettings
-
-    def target(settings: DriveSettings, lead_m: float) -> float | None:
-        aux = np.array([1.0, lead_m / LEAD_RANGE, 0.0, 0.0, 3.0], dtype=np.float32)  # target 5 m/s; P 0.95
-        return settings.decide(np.zeros(3, np.float32), aux, lambda v: float(v) * 5.0, settings.episode(0),
-                               3.0).target_speed
-
-    gated, plain = DriveSettings(speed_control="stop", stop_lead_max=40.0), DriveSettings(speed_control="stop")
-    assert target(gated, 44.0) == 5.0 and target(gated, 29.0) == 0.0
-    assert target(plain, 44.0) == 0.0 == target(plain, 29.0)
-    with pytest.raises(ValueError, match="stop_lead_max"):
-        DriveSettings(speed_control="target", stop_lead_max=40.0)

@@ -24,7 +24,7 @@ from yawil.bench.records import PROTOCOL, EpisodeLog, check_run_info, episode_ke
 from yawil.bench.suites import Episode
 from yawil.executor import ExecutorConfig, for_worker, open_executor
 from yawil.locking import folder_lock
-from yawil.policy.speed import check_stop_creep, check_stop_lead_max, check_stop_release, speed_control_mode
+from yawil.policy.speed import check_stop_creep, check_stop_release, speed_control_mode
 from yawil.sim.types import Control, Observation, World
 
 EXPERT = "expert"
@@ -58,7 +58,6 @@ class AgentSpec:
     stop_release: float = 0.0  # s standing before the "stop" mode's lead-stop class is ignored (yawil.agent.StopRelease)
     engine: str = "auto"  # where a learned agent's network runs (yawil.policy.engine: auto, torch, openvino, onnxruntime)
     stop_creep: float = 0.0  # m after which the release's creep ends (yawil.policy.drive.StopRelease; 0: its 2 s)
-    stop_lead_max: float = 0.0  # m of predicted lead distance beyond which the lead-stop class does not stop (0: off)
 
     @property
     def is_expert(self) -> bool:
@@ -86,8 +85,6 @@ class AgentSpec:
             opts["stop_release"] = float(self.stop_release)
         if self.stop_creep:  # only when set, so the records of earlier runs still match
             opts["stop_creep"] = float(self.stop_creep)
-        if self.stop_lead_max:
-            opts["stop_lead_max"] = float(self.stop_lead_max)
         if self.device != "cpu" and not self.is_expert:  # only when set, so the records of earlier runs still match
             opts["device"] = self.device
         if not self.is_expert:  # the engine and its precision change the numbers, so a resume must use the same
@@ -103,9 +100,7 @@ class AgentSpec:
             raise ValueError(f"--agent {self.agent!r}: expected 'expert', zoo:NAME or the path of a checkpoint file")
         if self.is_expert and (self.yaw_noise_deg or self.command_noise_p or self.speed_control):
             raise ValueError("noise and speed-control options apply to learned agents, not to the expert")
-        mode = speed_control_mode(self.speed_control)  # checked before the checkpoint is read
-        check_stop_creep(self.stop_creep, check_stop_release(self.stop_release, mode))
-        check_stop_lead_max(self.stop_lead_max, mode)
+        check_stop_creep(self.stop_creep, check_stop_release(self.stop_release, speed_control_mode(self.speed_control)))
         if self.expert_args and not self.is_expert:
             raise ValueError("--expert-arg applies to --agent expert only")
         if self.device not in ("cpu", "cuda"):
@@ -161,7 +156,6 @@ class AgentSpec:
     def drive(self) -> dict[str, Any]:
         """The drive settings of a learned agent, as keyword options of `yawil.agent.Agent.from_checkpoint`."""
         return {"speed_control": self.speed_control, "stop_release": self.stop_release, "stop_creep": self.stop_creep,
-                "stop_lead_max": self.stop_lead_max,
                 "yaw_noise_deg": self.yaw_noise_deg, "command_noise_p": self.command_noise_p,
                 "yaw_noise_mode": self.yaw_noise_mode, "command_noise_mode": self.command_noise_mode}
 
@@ -184,7 +178,7 @@ def drive_options(args: Any) -> dict[str, Any]:
     given none of them, its card's `drive` (so that `--agent zoo:NAME` drives as the card's figures were
     measured), said in one line."""
     given = {"speed_control": args.speed_control, "stop_release": args.stop_release,
-             "stop_creep": getattr(args, "stop_creep", 0.0), "stop_lead_max": getattr(args, "stop_lead_max", 0.0)}
+             "stop_creep": getattr(args, "stop_creep", 0.0)}
     if any(given.values()) or not str(args.agent).startswith("zoo:"):
         return given
     from yawil.zoo import card_drive, drive_flags

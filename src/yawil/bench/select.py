@@ -84,8 +84,7 @@ def candidate_label(path: Path) -> str:
 def select_checkpoint(checkpoints: Sequence[Path], out: Path, routes: int = 3, workers: int = 1,
                       progress: bool = True, speed_control: bool | str = False,
                       stop_release: float = 0.0, engine: str = "auto",
-                      episodes_per_worker: int | None = None, stop_creep: float = 0.0,
-                      stop_lead_max: float = 0.0) -> dict[str, Any]:
+                      episodes_per_worker: int | None = None, stop_creep: float = 0.0) -> dict[str, Any]:
     """Drive every candidate on the validation set (resumable per episode), write OUT/selection.json."""
     from yawil.bench.records import read_records
     from yawil.bench.runner import AgentSpec, run_benchmark
@@ -100,7 +99,6 @@ def select_checkpoint(checkpoints: Sequence[Path], out: Path, routes: int = 3, w
     eps = validation_episodes(routes=routes)
     # every candidate read and its agent built before any is driven: a bad last one fails in seconds, not hours
     specs = [AgentSpec(str(path), speed_control=speed_control, stop_release=stop_release, stop_creep=stop_creep,
-                       stop_lead_max=stop_lead_max,
                        engine=engine).validate() for path in checkpoints]
     rows: list[dict[str, Any]] = []
     for path, label, spec in zip(checkpoints, labels, specs, strict=True):
@@ -154,7 +152,7 @@ def run(args: argparse.Namespace) -> int:
             check_output_file(args.link, "--link", args.force)  # before any candidate is driven
         result = select_checkpoint(paths, Path(args.out), args.routes, args.workers, not args.no_progress,
                                    args.speed_control, args.stop_release, args.engine, args.episodes_per_worker,
-                                   args.stop_creep, args.stop_lead_max)
+                                   args.stop_creep)
         if args.link:
             from yawil.learn.artifacts import link_or_copy
 

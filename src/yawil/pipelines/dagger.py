@@ -34,7 +34,6 @@ from yawil.policy.speed import (
     SPEED_CONTROLS,
     add_speed_control_arguments,
     check_stop_creep,
-    check_stop_lead_max,
     check_stop_release,
     speed_control_mode,
 )
@@ -82,7 +81,6 @@ class DaggerConfig:
     speed_control: bool | str = False
     stop_release: float = 0.0  # s: the learner's "stop" release, as `yawil bench --stop-release`
     stop_creep: float = 0.0  # m: the release's creep length, as `yawil bench --stop-creep`
-    stop_lead_max: float = 0.0  # m: the lead-stop class's gate on the predicted lead distance (--stop-lead-max)
     # traffic of the on-policy rounds (LO, HI drawn per episode; None: collect's default). Why: dense-traffic
     # failures need the learner's own states in queues, which the default 10-30 vehicles rarely make
     round_vehicles: tuple[int, int] | None = None
@@ -119,10 +117,6 @@ class DaggerConfig:
             check_stop_creep(self.stop_creep, self.stop_release)
         except ValueError:
             need(False, "stop_creep", "metres >= 0, > 0 only with a stop_release")
-        try:
-            check_stop_lead_max(self.stop_lead_max, mode)
-        except ValueError:
-            need(False, "stop_lead_max", "metres >= 0, > 0 only with speed_control 'stop'")
         need(isinstance(self.expert_args, dict), "expert_args", "a mapping of ExpertConfig settings")
         for name in ("round_vehicles", "round_pedestrians"):
             v = getattr(self, name)
@@ -167,7 +161,7 @@ def _is_int(v: Any) -> bool:
 
 
 def load_learner(checkpoint: str, threads: int = 1, speed_control: bool | str = False,
-                 stop_release: float = 0.0, stop_creep: float = 0.0, stop_lead_max: float = 0.0) -> Any:
+                 stop_release: float = 0.0, stop_creep: float = 0.0) -> Any:
     """The learner of a collection process: the checkpoint's agent on the CPU, with `threads` torch threads,
     driving as it will be benchmarked (`speed_control`: throttle and brake from its target speed), so that the
     states it visits are the ones the benchmark will see."""
@@ -177,7 +171,7 @@ def load_learner(checkpoint: str, threads: int = 1, speed_control: bool | str = 
 
     torch.set_num_threads(threads)
     return Agent.from_checkpoint(checkpoint, device="cpu", speed_control=speed_control, stop_release=stop_release,
-                                 stop_creep=stop_creep, stop_lead_max=stop_lead_max)
+                                 stop_creep=stop_creep)
 
 
 # ------------------------------------------------------------------------------------------------- loop
@@ -301,7 +295,7 @@ class DaggerRun:
                             takeover_lateral=cfg.takeover_lateral, takeover_decel=cfg.takeover_decel,
                             takeover_stall=cfg.takeover_stall, takeover_seconds=cfg.takeover_seconds)
         learner = Learner(factory=functools.partial(load_learner, str(policy), 1, cfg.speed_control, cfg.stop_release,
-                                                            cfg.stop_creep, cfg.stop_lead_max), onpolicy=onpolicy,
+                                                            cfg.stop_creep), onpolicy=onpolicy,
                           identity=str(policy.resolve()), min_world_seed=BENCH_WORLD_SEED_LIMIT,
                           reject_route=BenchmarkRoutes(cfg.town))
         # No steering noise (the learner makes its own mistakes); the second before a collision is not a label.
@@ -429,7 +423,7 @@ def run(args: argparse.Namespace) -> int:
             lr=args.lr, round_lr=args.round_lr, workers=args.workers, executor=executor_from_args(args).kind, ray_address=args.ray_address,
             threads=args.threads, train_args=_train_args(args.train_arg),
             round0=args.round0, expert_data=args.expert_data, speed_control=args.speed_control,
-            stop_release=args.stop_release, stop_creep=args.stop_creep, stop_lead_max=args.stop_lead_max,
+            stop_release=args.stop_release, stop_creep=args.stop_creep,
             round_vehicles=args.round_vehicles, round_pedestrians=args.round_pedestrians,
             expert_args=_expert_args(args.expert_arg), guidance_reference=args.guidance_reference,
         )

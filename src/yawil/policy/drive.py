@@ -22,7 +22,7 @@ from yawil.data.schema import LEAD_RANGE
 from yawil.expert import ExpertConfig, hazard_speed
 from yawil.guidance import COMMAND_NOISE_MODES, YAW_NOISE_MODES, CommandNoise
 from yawil.models.base import AUX_NAMES, LEAD_STOP_FIRES
-from yawil.policy.speed import check_stop_creep, check_stop_lead_max, check_stop_release, speed_control_mode
+from yawil.policy.speed import check_stop_creep, check_stop_release, speed_control_mode
 from yawil.sim.types import DT, Control
 
 
@@ -175,8 +175,7 @@ class DriveSettings:
     """How a trained model is driven: the one place these settings are named and checked.
 
     `speed_control`: None (the network's throttle and brake), "target", "lead" or "stop" (`yawil.policy.speed`);
-    `stop_release`: seconds (with "stop"); `stop_creep`: metres after which a release's creep ends (0: its 2 s);
-    `stop_lead_max`: metres of predicted lead distance beyond which the lead-stop class does not stop (0: off); `yaw_noise_deg` / `command_noise_p` with their readings (Table II,
+    `stop_release`: seconds (with "stop"); `stop_creep`: metres after which a release's creep ends (0: its 2 s); `yaw_noise_deg` / `command_noise_p` with their readings (Table II,
     `yawil.guidance`); `post`: the clipping rules. A zoo model's card names the settings its figures were
     measured with (`card.json` "drive"), and `yawil.agent.Agent.from_checkpoint("zoo:NAME")` uses them.
     """
@@ -184,7 +183,6 @@ class DriveSettings:
     speed_control: str | None = None
     stop_release: float = 0.0
     stop_creep: float = 0.0
-    stop_lead_max: float = 0.0
     yaw_noise_deg: float = 0.0
     command_noise_p: float = 0.0
     yaw_noise_mode: str = "raw"
@@ -195,7 +193,6 @@ class DriveSettings:
         object.__setattr__(self, "speed_control", speed_control_mode(self.speed_control))  # True -> "target"
         object.__setattr__(self, "stop_release", check_stop_release(self.stop_release, self.speed_control))
         object.__setattr__(self, "stop_creep", check_stop_creep(self.stop_creep, self.stop_release))
-        object.__setattr__(self, "stop_lead_max", check_stop_lead_max(self.stop_lead_max, self.speed_control))
         if isinstance(self.yaw_noise_deg, bool) or not float(self.yaw_noise_deg) >= 0.0:
             raise ValueError(f"yaw_noise_deg={self.yaw_noise_deg!r}: expected >= 0 degrees")
         if isinstance(self.command_noise_p, bool) or not 0.0 <= float(self.command_noise_p) <= 1.0:
@@ -241,7 +238,7 @@ class DriveSettings:
     def as_dict(self) -> dict[str, Any]:
         """The settings that differ from the defaults, by name (a card's "drive", a record's options)."""
         out: dict[str, Any] = {}
-        for name in ("speed_control", "stop_release", "stop_creep", "stop_lead_max", "yaw_noise_deg", "command_noise_p"):
+        for name in ("speed_control", "stop_release", "stop_creep", "yaw_noise_deg", "command_noise_p"):
             if getattr(self, name):
                 out[name] = getattr(self, name)
         if self.yaw_noise_deg:
@@ -281,8 +278,6 @@ class DriveSettings:
         if len(aux) > len(AUX_NAMES):
             lead_stop = float(1.0 / (1.0 + np.exp(-np.float64(aux[len(AUX_NAMES)]))))
             fires = self.speed_control == "stop" and lead_stop > LEAD_STOP_FIRES
-            if self.stop_lead_max and lead_distance >= self.stop_lead_max:
-                fires = False  # the class says "a standing car close ahead" where the head sees no car: a false alarm
             if state.stop_release is not None:  # ticked on every step, so a creep runs its course
                 alone = fires and head >= SpeedControl.stop_speed  # the head itself would drive
                 fires = fires and not state.stop_release.released(ego_speed, alone)

@@ -47,15 +47,6 @@ def check_stop_creep(metres: float, release: float) -> float:
     return float(metres)
 
 
-def check_stop_lead_max(metres: float, mode: str | None) -> float:
-    """`stop_lead_max` as a float, refused in one line unless >= 0 m and (when > 0) with the "stop" mode."""
-    if isinstance(metres, bool) or not isinstance(metres, (int, float)) or not (math.isfinite(metres) and metres >= 0):
-        raise ValueError(f"stop_lead_max={metres!r}: expected metres >= 0 (0: the lead-stop class alone decides)")
-    if metres and mode != "stop":
-        raise ValueError(f"stop_lead_max={metres!r} applies to --speed-control stop, not {mode!r}")
-    return float(metres)
-
-
 def add_speed_control_arguments(p: argparse.ArgumentParser, what: str = "") -> None:
     """--speed-control and --stop-release, the same on bench, trace, select and dagger."""
     p.add_argument("--speed-control", nargs="?", const="target", default=False, choices=SPEED_CONTROLS,
@@ -69,9 +60,6 @@ def add_speed_control_arguments(p: argparse.ArgumentParser, what: str = "") -> N
     p.add_argument("--stop-creep", type=float, default=0.0, metavar="METRES",
                    help="with --stop-release: the creep also ends, and the lead-stop output counts again, once the car "
                         "has moved this far (default 0: the creep lasts its 2 s)")
-    p.add_argument("--stop-lead-max", type=float, default=0.0, metavar="METRES",
-                   help="with --speed-control stop: the lead-stop output stops the car only while the aux head's "
-                        "predicted lead distance is under this (default 0: the output alone decides)")
 
 
 def add_engine_arguments(p: argparse.ArgumentParser, batched: bool = False) -> None:

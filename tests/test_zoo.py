@@ -155,8 +155,9 @@ def test_every_shipped_model_gives_its_cards_outputs(name: str) -> None:
     code are what they were when the card was written."""
     assert check_zoo_model(name) <= 1e-3
     card = zoo.read_card(name)
-    for field in ("commands", "commit", "data", "machine", "wall_s", "eval100", "drive"):
+    for field in ("commands", "commit", "data", "machine", "wall_s", "drive"):
         assert field in card, f"zoo:{name}: its card lacks {field!r}"
+    assert "eval100" in card or "results" in card, f"zoo:{name}: its card holds no benchmark figure"
     assert np.isfinite(card["probe"]["bf16_max_diff_from_fp32"])
 
 

@@ -187,3 +187,29 @@ def test_the_onnx_example_drives_as_the_torch_agent_on_recorded_frames(packed: P
         want = agent.drive.post(d.actions, speed)
         got = driver.step(probe["image"][i], speed, probe["guidance"][i], int(probe["command"][i]))
         assert np.allclose([got.steer, got.throttle, got.brake], [want.steer, want.throttle, want.brake], atol=1e-4)
+
+
+def test_damaged_resume_state_is_named_and_pack_force_replaces_only_a_zoo_model(
+        tmp_path: Path, tiny_checkpoint: Any, tiny_dataset: Any) -> None:
+    """A flipped byte in the optimiser state (weights intact) is refused on load, since --resume would train on it;
+    `zoo pack --force` never replaces a folder that is not a zoo model (a dataset, a run, a user file)."""
+    from yawil.policy.checkpoint import load_checkpoint, save_checkpoint
+
+    ckpt = load_checkpoint(tiny_checkpoint("yaw-guided", guidance_dim=15).path)
+    ckpt["optimizer"] = {"state": {0: {"exp_avg": torch.ones(8)}}, "param_groups": [{"lr": 1e-3}]}
+    save_checkpoint(ckpt, tmp_path / "last.pt")
+    assert load_checkpoint(tmp_path / "last.pt")["optimizer"]["param_groups"][0]["lr"] == 1e-3
+    stored = torch.load(tmp_path / "last.pt", weights_only=False)
+    stored["optimizer"]["state"][0]["exp_avg"][3] = 4.7e8
+    torch.save(stored, tmp_path / "last.pt")
+    with pytest.raises(ValueError, match="optimiser or resume state does not match"):
+        load_checkpoint(tmp_path / "last.pt")
+    data = tiny_dataset(episodes=2, frames=5, k=15)
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / "best.pt").write_bytes(b"weights")
+    (tmp_path / "mine.txt").write_text("a user's file")
+    for name in ("run", "mine.txt"):
+        with pytest.raises(ValueError, match="is not a zoo model"):
+            pack(tiny_checkpoint("yaw-guided", guidance_dim=15).path, name, data, {"summary": "x"}, root=tmp_path,
+                 count=2, force=True)
+    assert (tmp_path / "run" / "best.pt").read_bytes() == b"weights" and (tmp_path / "mine.txt").is_file()

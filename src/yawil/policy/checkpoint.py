@@ -161,12 +161,42 @@ def weights_digest(state_dict: dict[str, torch.Tensor]) -> str:
     return h.hexdigest()
 
 
+def resume_digest(ckpt: dict[str, Any]) -> str:
+    """SHA-256 over what `--resume` reads besides the weights (optimiser moments, raw weights, the average's
+    state): a flipped byte there loads, trains on and is saved again under a fresh weights digest."""
+    import hashlib
+
+    h = hashlib.sha256()
+
+    def walk(obj: Any, key: str) -> None:
+        if isinstance(obj, torch.Tensor):
+            t = obj.detach().cpu().contiguous()
+            h.update(f"{key}:{t.dtype}:{tuple(t.shape)};".encode())
+            h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes())
+        elif isinstance(obj, dict):
+            for k in sorted(obj, key=str):
+                walk(obj[k], f"{key}/{k}")
+        elif isinstance(obj, (list, tuple)):
+            for i, v in enumerate(obj):
+                walk(v, f"{key}/{i}")
+        elif isinstance(obj, (int, float, str, bool)) or obj is None:
+            h.update(f"{key}={obj!r};".encode())
+
+    for name in ("optimizer", "raw_state_dict", "ema"):
+        if name in ckpt:
+            walk(ckpt[name], name)
+    return h.hexdigest()
+
+
 def save_checkpoint(ckpt: dict[str, Any], path: str | os.PathLike[str]) -> Path:
-    """Save atomically (a temporary file in the same folder, then a rename), with the weights' digest."""
+    """Save atomically (a temporary file in the same folder, then a rename), with the digests of its weights
+    and of its resume state."""
     missing = [k for k in REQUIRED_KEYS if k not in ckpt]
     if missing:
         raise ValueError(f"refusing to save a checkpoint without {missing}")
     ckpt = {**ckpt, "weights_sha256": weights_digest(ckpt["state_dict"])}
+    if any(k in ckpt for k in ("optimizer", "raw_state_dict", "ema")):
+        ckpt["resume_sha256"] = resume_digest(ckpt)
     path = Path(path)
     with atomic_file(path) as f:
         try:
@@ -213,6 +243,10 @@ def load_checkpoint(path: str | os.PathLike[str], map_location: str | torch.devi
     if want is not None and weights_digest(ckpt["state_dict"]) != want:
         raise ValueError(f"{path}: its weights do not match the SHA-256 stored with them: the file is damaged "
                          "(retrain, or restore it from a copy)")
+    resume = ckpt.get("resume_sha256")
+    if resume is not None and resume_digest(ckpt) != resume:
+        raise ValueError(f"{path}: its optimiser or resume state does not match the SHA-256 stored with it: the file "
+                         "is damaged (the weights may drive; --resume would train on the damage)")
     return ckpt
 
 

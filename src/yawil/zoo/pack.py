@@ -123,8 +123,12 @@ def pack(checkpoint: str | Path, name: str, data: Path, card: dict[str, Any], ro
     check_card(card, "--card")
     root = root or ZOO_DIR
     final = root / name
-    if final.exists() and not force:
-        raise ValueError(f"{final}: a zoo model of that name exists; give --force to replace it (or another --name)")
+    if final.exists() or final.is_symlink():
+        if not (final.is_dir() and (final / WEIGHTS).is_file() and (final / CARD).is_file()):
+            raise ValueError(f"{final}: exists and is not a zoo model (no {WEIGHTS} and {CARD}); choose another "
+                             "--name or --out (--force replaces only a zoo model)")
+        if not force:
+            raise ValueError(f"{final}: a zoo model of that name exists; give --force to replace it (or another --name)")
     report = check_dataset(data, images=False)
     if not report.ok:
         raise ValueError(f"--data {data}: fails yawil data check: " + "; ".join(report.lines()[-3:]))

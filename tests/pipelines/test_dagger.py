@@ -284,4 +284,8 @@ def test_a_round0_of_another_model_is_refused_before_any_collection(tmp_path: Pa
         with pytest.raises(ValueError, match=text):
             DaggerRun(tmp_path / f"dg_{model}", cfg, log=lambda m: None, progress=False).run()
         assert not (tmp_path / f"dg_{model}" / "data").exists()
-    assert time.perf_counter() - t0 < 20
+        assert not (tmp_path / f"dg_{model}" / "dagger.json").exists()  # the corrected command may use the folder
+    cfg = DaggerConfig(model="yaw-guided", round0=str(ckpt), expert_data=str(data), rounds=1, speed_control=True)
+    with pytest.raises(ValueError, match="needs a model with the aux head"):
+        DaggerRun(tmp_path / "dg_speed", cfg, log=lambda m: None, progress=False).run()
+    assert time.perf_counter() - t0 < 30

@@ -247,6 +247,9 @@ class DaggerRun:
         if ckpt["model_name"] != self.cfg.model:
             raise ValueError(f"--round0 {self.cfg.round0}: a {ckpt['model_name']} checkpoint; the rounds train "
                              f"--model {self.cfg.model}")
+        if self.cfg.speed_control and not ckpt["model_config"].get("aux"):
+            raise ValueError(f"--round0 {self.cfg.round0}: --speed-control needs a model with the aux head; this "
+                             "checkpoint has none (trained without --model-arg aux=true)")
         wanted = self.cfg.train_args.get("model_args") or {}
         differ = {k: (ckpt["model_config"].get(k), v) for k, v in wanted.items() if ckpt["model_config"].get(k) != v}
         if differ:
@@ -255,19 +258,28 @@ class DaggerRun:
                 f"{k}={b!r}" for k, (_, b) in differ.items()))
 
     def _run(self) -> Path:
-        self.check_config()
         cfg = self.cfg
+        # the inputs first, before the folder records this config: a refused command must not block its own
+        # corrected version (dagger.json would hold the refused settings)
+        if cfg.expert_data is not None:
+            from yawil.data.check import check_dataset
+
+            if not (self.expert_data() / "manifest.json").is_file():
+                raise ValueError(f"--expert-data {self.expert_data()}: not a yawil dataset (no manifest.json)")
+            report = check_dataset(self.expert_data(), images=False)
+            if not report.ok:
+                raise ValueError(f"--expert-data {self.expert_data()}: fails yawil data check: "
+                                 + "; ".join(report.lines()[-3:]))
+        if cfg.round0 is not None:
+            if not Path(cfg.round0).is_file():
+                raise ValueError(f"--round0 {cfg.round0}: no such checkpoint")
+            self.check_round0()
+        self.check_config()
         t0 = time.perf_counter()
         if cfg.expert_data is None:
             run_stage(self.stage("expert_data"), self.collect_expert, self.log, "round 0: expert data")
-        elif not (self.expert_data() / "manifest.json").is_file():
-            raise ValueError(f"--expert-data {self.expert_data()}: not a yawil dataset (no manifest.json)")
         if cfg.round0 is None:
             run_stage(self.stage("train_00"), lambda: self.train(0), self.log, "round 0: training")
-        elif not Path(cfg.round0).is_file():
-            raise ValueError(f"--round0 {cfg.round0}: no such checkpoint")
-        else:
-            self.check_round0()
         for r in range(1, cfg.rounds + 1):
             run_stage(self.stage(f"data_{r:02d}"), functools.partial(self.collect_round, r), self.log,
                       f"round {r}: on-policy data (beta {cfg.beta_of(r)})")

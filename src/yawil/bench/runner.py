@@ -149,6 +149,10 @@ class AgentSpec:
         when another checkpoint was written to the same path in between."""
         if self.is_expert or not self.checkpoint.is_file():  # the expert, or a custom agent_factory's name
             return None
+        if self.agent.startswith("zoo:"):
+            from yawil.zoo import weights_sha256
+
+            return weights_sha256(self.agent[len("zoo:"):])  # checked against its card once, not hashed again
         from yawil.fileio import file_sha256
 
         return file_sha256(self.checkpoint)

@@ -58,21 +58,6 @@ def input_names(model: Any) -> list[str]:
     return names_of(model)
 
 
-def example_inputs(model: Any, batch: int, seed: int = 0, image_size: tuple[int, int] = (88, 200)) -> dict[str, Any]:
-    """A random batch of valid inputs (seeded), for tracing and for the agreement check: the model's inputs of the
-    contract (`ModelInputs.named`), drawn in the order image, speed, guidance, command."""
-    import torch
-
-    from yawil.policy.inputs import ModelInputs, guidance_kind, takes_command
-
-    g = torch.Generator().manual_seed(seed)
-    image = torch.rand(batch, 3, *image_size, generator=g)
-    speed = torch.randn(batch, 1, generator=g)
-    guidance = torch.randn(batch, int(model.guidance_dim), generator=g) if guidance_kind(model) is not None else None
-    command = torch.randint(0, 4, (batch,), generator=g, dtype=torch.int64) if takes_command(model) else None
-    return dict(ModelInputs(image, speed, guidance, command).named())
-
-
 def export_onnx(checkpoint: str | Path, onnx_path: str | Path, opset: int = OPSET) -> Path:
     """Write the ONNX file atomically (temporary file, then rename) and return its path."""
     import json
@@ -90,6 +75,8 @@ def export_onnx(checkpoint: str | Path, onnx_path: str | Path, opset: int = OPSE
     ckpt = load_checkpoint(checkpoint)
     model = model_from_checkpoint(ckpt).eval()
     names = input_names(model)
+    from yawil.policy.inputs import example_inputs
+
     example = example_inputs(model, 2, image_size=image_size(model))
     outputs = graph_outputs(model, image_size(model))
     dynamic = {name: {0: "batch"} for name in names + outputs}
@@ -142,13 +129,18 @@ class Agreement:
     max_abs_ref: float
     finite: bool = True  # every value of both finite (a damaged model gives inf or NaN that agree perfectly)
 
+    @property
+    def is_attention(self) -> bool:
+        """An attention map (`attention_i`, or `real:attention_i` on real frames)."""
+        return self.output.split(":")[-1].startswith("attention")
+
     def ok(self, tolerance: float, attention_tolerance: float) -> bool:
         """Driving outputs: `tolerance` scaled by the output's magnitude when it exceeds 1 (predicted speed
         is in normalised units, float32 keeps ~7 digits). Attention maps: `attention_tolerance`, since a
         sharp softmax turns 1e-5 differences of the logits of a 34-layer network into ~1e-4 of the map."""
         if not self.finite:
             return False
-        if self.output.split(":")[-1].startswith("attention"):
+        if self.is_attention:
             return self.max_abs_diff <= attention_tolerance
         return self.max_abs_diff <= tolerance * max(1.0, self.max_abs_ref)
 
@@ -189,6 +181,8 @@ def check_onnx(checkpoint: str | Path, onnx_path: str | Path, batch: int = 4, se
     names = input_names(model)
     session = ort.InferenceSession(str(onnx_path), providers=["CPUExecutionProvider"])
     outputs = [o.name for o in session.get_outputs()]
+    from yawil.policy.inputs import example_inputs
+
     batches = [("", example_inputs(model, batch, seed=seed, image_size=image_size(model)))]
     real = real_frames(str(checkpoint), model, Norm.from_dict(ckpt["norm"]), data, batch)
     if real is not None:
@@ -240,7 +234,7 @@ def run(args: argparse.Namespace) -> int:
         ok = a.ok(args.tolerance, args.attention_tolerance)
         all_ok &= ok
         print(f"  {a.output}: max abs difference {a.max_abs_diff:.3g} (max |value| {a.max_abs_ref:.3g}) {'ok' if ok else 'FAIL'}")
-    worst = max(a.max_abs_diff for a in results if not a.output.split(":")[-1].startswith("attention"))
+    worst = max(a.max_abs_diff for a in results if not a.is_attention)
     if not any(a.output.startswith("real:") for a in results):
         print("  (random inputs only: give --data DIR to compare on dataset frames too)")
     print(

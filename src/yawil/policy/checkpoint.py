@@ -155,10 +155,15 @@ def weights_digest(state_dict: dict[str, torch.Tensor]) -> str:
 
     h = hashlib.sha256()
     for name in sorted(state_dict):
-        t = state_dict[name].detach().cpu().contiguous()
-        h.update(f"{name}:{t.dtype}:{tuple(t.shape)};".encode())
-        h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes())
+        _hash_tensor(h, name, state_dict[name])
     return h.hexdigest()
+
+
+def _hash_tensor(h: Any, key: str, tensor: torch.Tensor) -> None:
+    """One tensor into a digest: its key, dtype and shape, then its bytes (both digests below)."""
+    t = tensor.detach().cpu().contiguous()
+    h.update(f"{key}:{t.dtype}:{tuple(t.shape)};".encode())
+    h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes())
 
 
 def resume_digest(ckpt: dict[str, Any]) -> str:
@@ -170,9 +175,7 @@ def resume_digest(ckpt: dict[str, Any]) -> str:
 
     def walk(obj: Any, key: str) -> None:
         if isinstance(obj, torch.Tensor):
-            t = obj.detach().cpu().contiguous()
-            h.update(f"{key}:{t.dtype}:{tuple(t.shape)};".encode())
-            h.update(t.reshape(-1).view(torch.uint8).numpy().tobytes())
+            _hash_tensor(h, key, obj)
         elif isinstance(obj, dict):
             for k in sorted(obj, key=str):
                 walk(obj[k], f"{key}/{k}")

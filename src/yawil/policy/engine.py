@@ -30,7 +30,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from yawil.policy.inputs import ModelInputs, input_names
+from yawil.policy.inputs import ModelInputs, example_inputs, input_names
 from yawil.policy.runtime import Runtime
 from yawil.policy.speed import ENGINES
 
@@ -49,9 +49,8 @@ class NetOutput:
 def graph_outputs(model: Any, image_size: tuple[int, int] = (88, 200)) -> list[str]:
     """The outputs of the model's graph, in order: actions, pred_speed, then aux, branches (where the model has
     them) and attention_0.. (ONNX forbids reusing the input name `speed`, hence pred_speed)."""
-    names = input_names(model)
     with torch.no_grad():
-        out = ModelInputs(**_example(model, names, 1, image_size)).forward(model)
+        out = ModelInputs(**example_inputs(model, 1, image_size=image_size)).forward(model)
     return (["actions", "pred_speed"] + (["aux"] if out.aux is not None else [])
             + (["branches"] if out.branches is not None else []) + [f"attention_{i}" for i in range(len(out.attention))])
 
@@ -72,16 +71,6 @@ def graph_module(model: Any) -> torch.nn.Module:
             return (out.actions, out.speed, *extra, *out.attention)
 
     return Flat().eval()
-
-
-def _example(model: Any, names: list[str], batch: int, image_size: tuple[int, int]) -> dict[str, torch.Tensor]:
-    g = torch.Generator().manual_seed(0)
-    x = {"image": torch.rand(batch, 3, *image_size, generator=g), "speed": torch.zeros(batch, 1)}
-    if "guidance" in names:
-        x["guidance"] = torch.zeros(batch, int(model.guidance_dim))
-    if "command" in names:
-        x["command"] = torch.zeros(batch, dtype=torch.int64)
-    return x
 
 
 class Engine(ABC):
@@ -127,7 +116,7 @@ class GraphEngine(Engine):
         self.name, self.precision, self.threads = kind, precision, max(1, int(threads))
         self.inputs = input_names(model)
         self.outputs = graph_outputs(model, image_size)
-        example = tuple(_example(model, self.inputs, 1, image_size).values())
+        example = tuple(example_inputs(model, 1, image_size=image_size).values())
         self._shapes = [list(t.shape[1:]) for t in example]  # one row's shape of each input
         flat = graph_module(model)
         with warnings.catch_warnings():

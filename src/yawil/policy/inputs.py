@@ -216,3 +216,15 @@ def observation_guidance(
         yaw_noise_mode=yaw_noise_mode,
     )
     return np.asarray(g.get(kind), dtype=np.float32), hint_out
+
+
+def example_inputs(model: Any, batch: int, seed: int = 0, image_size: tuple[int, int] = (88, 200)) -> dict[str, Any]:
+    """A random batch of valid inputs (seeded), for tracing a graph (the engines, the ONNX export) and for the
+    export's agreement check: the model's inputs of the contract (`ModelInputs.named`), drawn in the order image,
+    speed, guidance, command."""
+    g = torch.Generator().manual_seed(seed)
+    image = torch.rand(batch, 3, *image_size, generator=g)
+    speed = torch.randn(batch, 1, generator=g)
+    guidance = torch.randn(batch, int(model.guidance_dim), generator=g) if guidance_kind(model) is not None else None
+    command = torch.randint(0, 4, (batch,), generator=g, dtype=torch.int64) if takes_command(model) else None
+    return dict(ModelInputs(image, speed, guidance, command).named())

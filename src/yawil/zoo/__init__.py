@@ -43,13 +43,19 @@ def zoo_dir(name: str, root: Path | None = None) -> Path:
     return root / name
 
 
-def resolve_checkpoint(arg: str | os.PathLike[str]) -> Path:
-    """A checkpoint path, or `zoo:NAME` -> that zoo model's weights file, checked against its card's SHA-256."""
-    s = str(arg)
-    if not s.startswith(PREFIX):
-        return Path(s)
-    name = s[len(PREFIX):]
+# weights files already checked against their cards: path -> (mtime_ns, size, sha256); a run resolves the same
+# zoo model many times (spec, identity, hash, every agent built) and 20 MB is hashed once
+_VERIFIED: dict[Path, tuple[int, int, str]] = {}
+
+
+def weights_sha256(name: str) -> str:
+    """The SHA-256 of zoo model `name`'s weights file, checked against its card's (`weights_sha256`), in one line
+    naming the file when they differ."""
     path = zoo_dir(name) / WEIGHTS
+    st = path.stat()
+    seen = _VERIFIED.get(path)
+    if seen is not None and seen[:2] == (st.st_mtime_ns, st.st_size):
+        return seen[2]
     want = read_card(name).get("weights_sha256")
     if want is None:
         raise ValueError(f"{path.parent / CARD}: no weights_sha256; a zoo card names its weights' hash")
@@ -58,7 +64,17 @@ def resolve_checkpoint(arg: str | os.PathLike[str]) -> Path:
     if file_sha256(path) != want:
         raise ValueError(f"{path}: its SHA-256 differs from its card's weights_sha256: the file is damaged or was "
                          "replaced without `yawil zoo pack` (restore it, e.g. git checkout)")
-    return path
+    _VERIFIED[path] = (st.st_mtime_ns, st.st_size, want)
+    return str(want)
+
+
+def resolve_checkpoint(arg: str | os.PathLike[str]) -> Path:
+    """A checkpoint path, or `zoo:NAME` -> that zoo model's weights file, checked against its card's SHA-256."""
+    s = str(arg)
+    if not s.startswith(PREFIX):
+        return Path(s)
+    weights_sha256(s[len(PREFIX):])
+    return zoo_dir(s[len(PREFIX):]) / WEIGHTS
 
 
 def read_card(name: str, root: Path | None = None) -> dict[str, Any]:

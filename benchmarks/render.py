@@ -1,9 +1,10 @@
 """Camera render speed at 200x88 for a town-size scene (400 x 330 m grid, 50 vehicles, 30 pedestrians).
 
-    .venv/bin/python benchmarks/render.py [--frames 600] [--backends software,opengl]
+    .venv/bin/python benchmarks/render.py [--frames 600] [--backends software,opengl] [--no-semantic]
 
 Prints frames/s and ms/frame per backend and weather, the cost split (scene graph + raster, numpy
-post-processing), and the software/opengl ratio. The town is synthetic: a grid of crossings and
+post-processing), the software/opengl ratio, and the semantic camera's pass (`render_semantic` over the same
+frames: ms/frame, its ratio to the RGB frame, and the one-off build of its scene). The town is synthetic: a grid of crossings and
 T-junctions with two-lane roads, sidewalks, markings, lit crossings and buildings on every block side.
 """
 
@@ -109,7 +110,7 @@ def load_town(name: str) -> TownGeometry:
     return get_town(name).geometry
 
 
-def run(backend: str, frames: int, weather: str, town_name: str = "grid") -> dict[str, float]:
+def run(backend: str, frames: int, weather: str, town_name: str = "grid", semantic: bool = True) -> dict[str, float]:
     town = load_town(town_name)
     xmin, ymin, xmax, ymax = town.bounds
     t0 = time.perf_counter()
@@ -146,8 +147,22 @@ def run(backend: str, frames: int, weather: str, town_name: str = "grid") -> dic
     for i in range(frames):
         post_effects(img, r._haze, r._haze_color, r._rain_layers, i)
     t_post = time.perf_counter() - t
+    out = {"build_s": build, "ms": 1e3 * t_total / frames, "post_ms": 1e3 * t_post / frames}
+    if semantic:  # the same frames through the semantic camera (its scene built by the first call)
+        t = time.perf_counter()
+        r.render_semantic(poses[0], actors, {})
+        out["sem_build_s"] = time.perf_counter() - t
+        t_sem = 0.0
+        for i, pose in enumerate(poses):
+            moved = [ActorView(a.id, a.kind, a.x + 0.05 * i * math.cos(a.yaw), a.y + 0.05 * i * math.sin(a.yaw), a.yaw,
+                               a.length, a.width, a.height, a.color) for a in actors]
+            lights = {lp.id: states[(i // 50 + lp.id) % 3] for lp in town.light_posts}
+            t = time.perf_counter()
+            r.render_semantic(pose, moved, lights)
+            t_sem += time.perf_counter() - t
+        out["sem_ms"] = 1e3 * t_sem / frames
     r.close()
-    return {"build_s": build, "ms": 1e3 * t_total / frames, "post_ms": 1e3 * t_post / frames}
+    return out
 
 
 def main() -> None:
@@ -156,22 +171,28 @@ def main() -> None:
     ap.add_argument("--backends", default="software,opengl")
     ap.add_argument("--weathers", default="ClearNoon,HardRainNoon")
     ap.add_argument("--town", default="grid", help="grid (synthetic, default) or a simulator map name")
+    ap.add_argument("--no-semantic", action="store_true", help="skip the semantic camera's pass")
     args = ap.parse_args()
     town = load_town(args.town)
     print(f"town {town.name}: {len(town.buildings)} buildings, {len(town.road_polygons)} road polygons, "
           f"{len(town.markings)} markings, {len(town.light_posts)} lights; 50 vehicles, 30 pedestrians; 200x88")
-    print("(ms/frame is wall time of CameraRenderer.render: scene update, Panda3D render, copy, haze/rain)")
-    print(f"{'backend':10s} {'weather':14s} {'frames/s':>9s} {'ms/frame':>9s} {'numpy post ms':>14s} {'build s':>8s}")
+    print("(ms/frame is wall time of CameraRenderer.render: scene update, Panda3D render, copy, haze/rain;")
+    print(" semantic ms/frame that of CameraRenderer.render_semantic on the same frames, after the RGB ones)")
+    print(f"{'backend':10s} {'weather':14s} {'frames/s':>9s} {'ms/frame':>9s} {'numpy post ms':>14s} {'build s':>8s}"
+          f" {'semantic ms/frame':>18s} {'semantic/RGB':>13s} {'semantic build s':>17s}")
     per_backend: dict[str, float] = {}
     for backend in args.backends.split(","):
         for weather in args.weathers.split(","):
             try:
-                res = run(backend, args.frames, weather, args.town)
+                res = run(backend, args.frames, weather, args.town, semantic=not args.no_semantic)
             except RuntimeError as e:
                 print(f"{backend:10s} unavailable: {e}")
                 break
             per_backend.setdefault(backend, res["ms"])
-            print(f"{backend:10s} {weather:14s} {1e3 / res['ms']:9.0f} {res['ms']:9.3f} {res['post_ms']:14.3f} {res['build_s']:8.2f}")
+            sem = (f" {res['sem_ms']:18.3f} {res['sem_ms'] / res['ms']:13.2f} {res['sem_build_s']:17.2f}"
+                   if "sem_ms" in res else "")
+            print(f"{backend:10s} {weather:14s} {1e3 / res['ms']:9.0f} {res['ms']:9.3f} {res['post_ms']:14.3f} "
+                  f"{res['build_s']:8.2f}{sem}")
     if "software" in per_backend and "opengl" in per_backend:
         print(f"software / opengl time ratio (first weather): {per_backend['software'] / per_backend['opengl']:.2f}")
 

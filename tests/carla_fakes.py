@@ -52,7 +52,7 @@ class FakeLibrary:
     def __init__(self) -> None:
         ids = ["vehicle.lincoln.mkz_2017", "vehicle.tesla.model3", "vehicle.audi.tt", "vehicle.yamaha.yzf",
                "walker.pedestrian.0001", "walker.pedestrian.0002", "controller.ai.walker", "sensor.camera.rgb",
-               "sensor.other.collision", "sensor.other.lane_invasion"]
+               "sensor.camera.semantic_segmentation", "sensor.other.collision", "sensor.other.lane_invasion"]
         self.bps = [FakeBlueprint(i, number_of_wheels="2" if "yamaha" in i else "4", role_name="")
                     if i.startswith("vehicle.") else FakeBlueprint(i) for i in ids]
 
@@ -269,12 +269,28 @@ class FakeCarlaServer:
                 img[:, :, 2] = (np.arange(600) % 256)[:, None]
                 img[:, :, 1] = self.frame % 256
                 sensor.callback(FakeImage(self.frame, img.tobytes()))
+            elif sensor.type_id == "sensor.camera.semantic_segmentation":
+                sensor.callback(FakeImage(self.frame, semantic_frame().tobytes()))
             elif sensor.type_id == "sensor.other.collision":
                 for other in list(self.actors.values()):
                     if other.type_id.startswith("vehicle.") and other is not self.ego \
                             and other.transform.location.distance(self.ego.transform.location) < 3.0:
                         sensor.callback(FakeCollision(self.frame, other))
         return self.frame
+
+
+def semantic_frame() -> np.ndarray:
+    """The fake semantic camera's BGRA frame, tags in red: sky over the horizon (row 300), road below, a car
+    (rows 320-400, columns 300-500) and a pole (column 100); green and blue hold noise CARLA would not send."""
+    tags = carla.CityObjectLabel
+    img = np.zeros((600, 800, 4), dtype=np.uint8)
+    img[:, :, 0] = 77
+    img[:, :, 1] = np.arange(800) % 256
+    img[:300, :, 2] = int(tags.Sky)
+    img[300:, :, 2] = int(tags.Roads)
+    img[320:400, 300:500, 2] = int(tags.Car)
+    img[150:450, 96:104, 2] = int(tags.Poles)
+    return img
 
 
 class FakeImage:

@@ -61,3 +61,18 @@ def test_every_writer_takes_the_lock(tmp_path: Path, command: str, capsys: pytes
             rc, err = 2, str(exit_)
     assert rc == 2 and "another yawil process" in err and "\n" not in err, err
     assert time.perf_counter() - t0 < 30
+
+
+def test_a_refused_command_leaves_no_folder_behind(tmp_path: Path) -> None:
+    """A folder the lock made and nothing was written into goes again (its lone lock file would mark the path
+    as a yawil run); a folder that existed, or got a file, stays."""
+    with pytest.raises(ValueError, match="bad data"), folder_lock(tmp_path / "new" / "run", "training run"):
+        raise ValueError("bad data")
+    assert not (tmp_path / "new" / "run").exists()
+    (tmp_path / "mine").mkdir()
+    with folder_lock(tmp_path / "mine", "training run"):
+        pass
+    assert (tmp_path / "mine").is_dir()
+    with folder_lock(tmp_path / "made", "training run") as folder:
+        (folder / "config.json").write_text("{}")
+    assert (tmp_path / "made" / "config.json").is_file()

@@ -88,3 +88,43 @@ def test_the_rule_itself(tree: Path) -> None:
     assert check_output_file(tree / "mine.csv", "--out", force=True) == tree / "mine.csv"
     with pytest.raises(ValueError, match="is a folder"):
         check_output_file(tree / "run", "--out", force=True)
+
+
+# folder options: (argv with {t}, the file that must keep its bytes, text of the one line)
+FOLDER_CASES = [
+    (["report", "{t}/run", "--out", "{t}/web"], "web/app.js", "--force"),
+    (["report", "{t}/run", "--out", "{t}/run", "--force"], "run/best.pt", "results or model folder"),
+    (["report", "{t}/run", "--out", "{t}/mine.csv"], "mine.csv", "is a file"),
+    (["explain", "--checkpoint", "{t}/run/best.pt", "--frames", "{t}/data", "--out", "{t}/web"], "web/app.js",
+     "--force"),
+    (["explain", "--checkpoint", "{t}/run/best.pt", "--episode", "--out", "{t}/mine.csv"], "mine.csv", "is a file"),
+    (["sim", "view", "--out", "{t}/web"], "web/app.js", "--force"),
+    (["sim", "view", "--out", "{t}/data", "--force"], "data/ep_000000.h5", "dataset"),
+]
+
+
+@pytest.mark.parametrize("argv, kept, text", FOLDER_CASES,
+                         ids=[" ".join(c[0][:2]) + f" {i}" for i, c in enumerate(FOLDER_CASES)])
+def test_a_folder_option_never_writes_over_a_users_files(tree: Path, argv: list[str], kept: str, text: str) -> None:
+    before = (tree / kept).read_bytes()
+    rc, lines = _run([a.replace("{t}", str(tree)) for a in argv])
+    assert rc == 2 and len(lines) == 1 and text in lines[0], lines
+    assert (tree / kept).read_bytes() == before
+    assert sorted(p.name for p in (tree / "web").iterdir()) == ["app.js", "manifest.json"]
+
+
+def test_the_folder_rule_itself(tree: Path) -> None:
+    from yawil.fileio import OUTPUT_MARKER, check_output_folder, claim_output_folder
+
+    assert check_output_folder(tree / "new", "--out", "report") == tree / "new"
+    (tree / "empty").mkdir()
+    check_output_folder(tree / "empty", "--out", "report")
+    claim_output_folder(tree / "new", "report")
+    (tree / "new" / "report.html").write_text("old report")
+    check_output_folder(tree / "new", "--out", "report")  # the same command regenerates its own folder
+    with pytest.raises(ValueError, match="yawil report"):
+        check_output_folder(tree / "new", "--out", "explain")  # another command's folder needs --force
+    check_output_folder(tree / "web", "--out", "report", force=True)  # a user's folder with --force
+    (tree / "web" / OUTPUT_MARKER).write_text("not json")
+    with pytest.raises(ValueError, match="entries"):
+        check_output_folder(tree / "web", "--out", "report")

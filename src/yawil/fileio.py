@@ -153,6 +153,69 @@ def check_output_file(path: str | os.PathLike[str], option: str, force: bool = F
     return path
 
 
+def make_folder(path: str | os.PathLike[str], what: str) -> Path:
+    """Create folder `path` (and its parents), refusing in one line a path that is, or lies under, a file: the
+    OS says only "[Errno 17] File exists" or "[Errno 20] Not a directory" without naming which."""
+    path = Path(path)
+    for p in (path, *path.parents):
+        if p.exists() or p.is_symlink():
+            if not p.is_dir():
+                where = "is a file" if p == path else f"its parent {p} is a file"
+                raise ValueError(f"{path}: {where}; expected a folder for the {what}")
+            break
+    path.mkdir(parents=True, exist_ok=True)
+    return path
+
+
+OUTPUT_MARKER = ".yawil-output"  # in a folder a report, explain or view command wrote: which command
+
+
+def check_output_folder(path: str | os.PathLike[str], option: str, command: str, force: bool = False) -> Path:
+    """Refuse, in one line naming the folder, an output folder whose files a command would replace unasked.
+
+    A folder is fine when it does not exist, is empty, or was written before by the same `command` (its
+    `OUTPUT_MARKER` says so: a report is regenerated in place). A user's folder with other files needs `force`
+    (same-named files are then replaced); a file, or a folder a yawil stage owns (dataset, run, results, zoo
+    model: `OWNED_MARKERS`), is refused whatever `force` says. Checked before any work."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise ValueError(f"{option} {path}: is a file; expected a folder to write into")
+    if not path.exists():
+        for p in path.parents:
+            if p.exists():
+                if not p.is_dir():
+                    raise ValueError(f"{option} {path}: its parent {p} is a file; expected a folder to write into")
+                break
+        return path
+    for marker, beside in OWNED_MARKERS.items():
+        if (path / marker).exists() and (beside is None or (path / beside).exists()):
+            raise ValueError(f"{option} {path}: a yawil dataset, run, results or model folder; give a new folder "
+                             f"(for example {path / command}); --force does not write there")
+    try:
+        entries = [e.name for e in path.iterdir()]
+    except OSError as err:
+        raise ValueError(f"{option} {path}: cannot be read ({err.strerror or err})") from None
+    if not entries:
+        return path
+    try:
+        made_by = json.loads((path / OUTPUT_MARKER).read_text(encoding="utf-8")).get("command")
+    except (OSError, ValueError, AttributeError):
+        made_by = None
+    if made_by == command or force:
+        return path
+    what = f"was written by `yawil {made_by}`" if made_by else f"holds {len(entries)} entries yawil {command} did not write"
+    raise ValueError(f"{option} {path}: {what}; give a new or empty folder, or --force to write beside them "
+                     "(files of the same name are replaced)")
+
+
+def claim_output_folder(path: str | os.PathLike[str], command: str) -> Path:
+    """Create the output folder `check_output_folder` allowed and mark it as `command`'s, so that the same
+    command may regenerate its files there later without --force."""
+    path = make_folder(path, f"{command} output")
+    write_json_atomic(path / OUTPUT_MARKER, {"command": command})
+    return path
+
+
 def file_sha256(path: str | os.PathLike[str]) -> str:
     """SHA-256 of a file's bytes, read in blocks (checkpoints, zoo weights)."""
     import hashlib

@@ -15,6 +15,8 @@ from pathlib import Path
 
 from filelock import FileLock, Timeout
 
+from yawil.fileio import make_folder
+
 LOCK_FILE = ".yawil.lock"
 
 
@@ -22,10 +24,8 @@ LOCK_FILE = ".yawil.lock"
 def folder_lock(folder: str | os.PathLike[str], what: str) -> Iterator[Path]:
     """Hold `folder`'s lock for the body (creating the folder); ValueError if another holder has it (another
     process, or a second lock of the same folder in this one)."""
-    folder = Path(folder)
-    if folder.exists() and not folder.is_dir():
-        raise ValueError(f"{folder}: is a file; expected a folder for the {what}")
-    folder.mkdir(parents=True, exist_ok=True)
+    created = not Path(folder).exists()
+    folder = make_folder(folder, what)
     path = folder / LOCK_FILE
     lock = FileLock(str(path), timeout=0, mode=0o644)
     try:
@@ -39,3 +39,16 @@ def folder_lock(folder: str | os.PathLike[str], what: str) -> Iterator[Path]:
         yield folder
     finally:
         lock.release()
+        if created:
+            _remove_if_unused(folder, path)
+
+
+def _remove_if_unused(folder: Path, lock_path: Path) -> None:
+    """A folder this lock created and nothing was written into (the command was refused after taking it) goes
+    again: left behind, its lone lock file would mark a user's path as a yawil run."""
+    try:
+        if [p.name for p in folder.iterdir()] == [LOCK_FILE]:
+            lock_path.unlink()
+            folder.rmdir()
+    except OSError:
+        pass  # another process took the folder meanwhile: it stays

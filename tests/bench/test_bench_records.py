@@ -104,6 +104,31 @@ def test_a_changed_checkpoint_or_label_is_refused_on_resume(tmp_path: Path) -> N
     assert AgentSpec("expert").content_hash() is None
 
 
+def test_a_moved_checkpoint_resumes_its_folder(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """Records name a checkpoint under the working folder relatively (a repository's records read the same on every
+    clone), and a resume compares the weights, so a clone elsewhere resumes; other weights at the path are refused."""
+    import shutil
+
+    from yawil.bench.runner import AgentSpec
+
+    for clone in ("a", "b"):
+        (tmp_path / clone / "runs").mkdir(parents=True)
+    (tmp_path / "a" / "runs" / "best.pt").write_bytes(b"weights one")
+    shutil.copy(tmp_path / "a" / "runs" / "best.pt", tmp_path / "b" / "runs" / "best.pt")
+    out = tmp_path / "r"
+    out.mkdir()
+    for clone in ("a", "b"):
+        monkeypatch.chdir(tmp_path / clone)
+        spec = AgentSpec("runs/best.pt")
+        assert spec.identity() == "runs/best.pt"
+        check_run_info(out, {"agent": str(tmp_path / clone / "runs" / "best.pt"), "agent_options": {},
+                             "agent_sha256": spec.content_hash()})  # the absolute path of a moved clone
+    (tmp_path / "b" / "runs" / "best.pt").write_bytes(b"weights two")
+    with pytest.raises(ValueError, match="another --out"):
+        check_run_info(out, {"agent": "runs/best.pt", "agent_options": {}, "agent_sha256": spec.content_hash()})
+    assert AgentSpec(str(tmp_path / "b" / "runs" / "best.pt")).identity() == "runs/best.pt"
+
+
 def test_iter_results_refuses_a_repeated_episode(tmp_path: Path) -> None:
     (tmp_path / EPISODES_FILE).write_text(json.dumps(_rec(0)) + "\n" + json.dumps(_rec(1)) + "\n" + json.dumps(_rec(0)) + "\n")
     with pytest.raises(ValueError, match="record 3 repeats episode straight/training/ClearNoon/0/0"):

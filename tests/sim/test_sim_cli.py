@@ -54,7 +54,7 @@ def test_view_writes_camera_frames_and_birdseye(tmp_path: Path, monkeypatch: pyt
     out = tmp_path / "view"
     assert main(["sim", "view", "--town", "square", "--steps", "4", "--frames", "2", "--vehicles", "3",
                  "--pedestrians", "3", "--out", str(out)]) == 0
-    assert sorted(p.name for p in out.iterdir()) == ["birdseye.png", "camera_0000.png", "camera_0004.png"]
+    assert sorted(p.name for p in out.iterdir()) == [".yawil-output", "birdseye.png", "camera_0000.png", "camera_0004.png"]
     (call,) = calls
     assert call["geometry"].name == "square" and call["route_xy"].shape[1] == 2
     assert {a.kind for a in call["actors"]} == {"vehicle", "pedestrian"} and call["ego"].id == 0

@@ -204,7 +204,7 @@ def _run_suite(args: argparse.Namespace) -> int:
     servers = servers_for(args.carla_servers, args.workers, args.backend)
     spec = AgentSpec(args.agent, args.yaw_noise_deg, args.command_noise_p, yaw_noise_mode=args.yaw_noise,
                      command_noise_mode=args.command_noise, expert_args=tuple(args.expert_arg),
-                     device=agent_device(args.device), engine=args.engine, **drive_options(args)).validate()
+                     device=agent_device(args.device), engine=args.engine, **drive_options(args)).validate(build=False)
     per_worker = args.episodes_per_worker
     if args.backend != "embedded" and per_worker not in (None, 1):
         raise ValueError(f"--episodes-per-worker {per_worker}: a CARLA server drives one episode at a time; give 1")

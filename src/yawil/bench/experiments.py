@@ -23,7 +23,7 @@ from typing import Any
 
 from yawil.bench.metrics import mean_std
 from yawil.bench.records import episode_key, iter_results
-from yawil.fileio import write_json_atomic
+from yawil.fileio import make_folder, write_json_atomic
 from yawil.stages import read_marker, write_marker
 
 METHODS: tuple[tuple[str, str], ...] = (
@@ -217,8 +217,7 @@ def table1_markdown(cells: dict[tuple[str, str], int], n_tasks: int, profile: st
 def square_experiment(out: str | Path, profile: str = "quick", seed: int = 0, log: Log = print) -> Path:
     """Every stage of Table I; returns the path of table1.md."""
     p = get_profile(profile)
-    root = Path(out)
-    root.mkdir(parents=True, exist_ok=True)
+    root = make_folder(out, "experiment")
     write_json_atomic(root / "profile.json", asdict(p))
     full = collect_stage(root, p, seed, log)
     data = subset_stage(root, full, log)

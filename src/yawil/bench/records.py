@@ -137,13 +137,14 @@ class EpisodeLog:
         self.close()
 
 
-def check_run_info(folder: str | Path, info: Mapping[str, Any], label_given: bool = False) -> None:
+def check_run_info(folder: str | Path, info: Mapping[str, Any], label_given: bool = False, write: bool = True) -> None:
     """Store the agent's identity (and the protocol version) with the results, or check that a resumed run
     uses the same agent under the same protocol.
 
     Mixing two agents' episodes in one folder would make its figures meaningless, so it is an error: the
     same path, options and checkpoint content (`agent_sha256`; folders written before it was recorded are
     checked by path only). A label given explicitly must match the folder's (it would otherwise be ignored).
+    `write=False` only checks (before the lock is taken and the agent built).
     """
     path = Path(folder) / RUN_FILE
     if path.exists():
@@ -154,9 +155,10 @@ def check_run_info(folder: str | Path, info: Mapping[str, Any], label_given: boo
         if old.get("protocol", 1) != PROTOCOL:
             raise ValueError(f"{path}: results {_other_protocol(old.get('protocol', 1))}")
         keys = ["agent", "agent_options"] + (["label"] if label_given else [])
+        same_weights = old.get("agent_sha256") is not None and old.get("agent_sha256") == info.get("agent_sha256")
         for key in keys:
-            if key == "agent" and _zoo_path_of(old.get(key)) == info.get(key):
-                continue  # written before records named zoo models zoo:NAME (the hash below still compares)
+            if key == "agent" and (_zoo_path_of(old.get(key)) == info.get(key) or same_weights):
+                continue  # a zoo model named by its installed path before, or a checkpoint moved (same weights)
             if old.get(key) != info.get(key):
                 raise ValueError(
                     f"{path}: results folder belongs to {key}={old.get(key)!r}, this run has {info.get(key)!r}; "
@@ -169,7 +171,8 @@ def check_run_info(folder: str | Path, info: Mapping[str, Any], label_given: boo
                 "use another --out folder"
             )
         return
-    write_json_atomic(path, {**info, "protocol": PROTOCOL})
+    if write:
+        write_json_atomic(path, {**info, "protocol": PROTOCOL})
 
 
 def _zoo_path_of(agent: Any) -> str | None:

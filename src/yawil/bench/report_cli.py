@@ -15,6 +15,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     )
     p.add_argument("results", nargs="+", help="results folders (each holds episodes.jsonl)")
     p.add_argument("--out", default="report", help="output folder (default: report)")
+    p.add_argument("--force", action="store_true",
+                   help="write into an --out folder that holds other files (same-named ones are replaced)")
     p.add_argument(
         "--trajectory",
         action="append",
@@ -30,6 +32,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 def run(args: argparse.Namespace) -> int:
     from yawil.bench.report import write_report
     from yawil.bench.suites import get_condition
+    from yawil.fileio import check_output_folder, claim_output_folder
 
     chosen: dict[str, str] = {}
     for item in args.trajectory:
@@ -38,6 +41,8 @@ def run(args: argparse.Namespace) -> int:
             raise SystemExit(f"--trajectory {item!r}: expected CONDITION=TASK/ROUTE/SEED")
         get_condition(cond)
         chosen[cond] = spec
+    check_output_folder(args.out, "--out", "report", args.force)  # a ValueError: one line, exit 2
+    claim_output_folder(args.out, "report")
     try:
         paths = write_report(args.results, args.out, chosen)
     except ValueError as err:

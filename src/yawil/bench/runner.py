@@ -95,7 +95,9 @@ class AgentSpec:
             opts["expert"] = ExpertConfig.from_items(self.expert_args).changes()
         return opts
 
-    def validate(self) -> AgentSpec:
+    def validate(self, build: bool = True) -> AgentSpec:
+        """Every option checked before any episode; `build` also loads the agent once (the checkpoint, the
+        engine: seconds), which run_benchmark does after the cheap check of the results folder."""
         if not self.is_expert and not self.checkpoint.is_file():
             raise ValueError(f"--agent {self.agent!r}: expected 'expert', zoo:NAME or the path of a checkpoint file")
         if self.is_expert and (self.yaw_noise_deg or self.command_noise_p or self.speed_control):
@@ -122,7 +124,7 @@ class AgentSpec:
             raise ValueError(
                 f"yaw_noise_deg must be >= 0 and command_noise_p in [0, 1], got {self.yaw_noise_deg}, {self.command_noise_p}"
             )
-        if not self.is_expert:
+        if build and not self.is_expert:
             self.build(0)  # an unreadable checkpoint, or an option its model cannot take, fails before any episode
         return self
 
@@ -139,10 +141,16 @@ class AgentSpec:
 
     def identity(self) -> str:
         """What records name the agent by: 'expert', `zoo:NAME` (the same on every machine; the weights' hash is
-        recorded beside it), or the checkpoint's absolute path."""
+        recorded beside it), or the checkpoint's path: relative to the working folder when it lies under it (a
+        repository's records then read the same on every clone), else absolute. A resume compares the weights'
+        hash, so a moved checkpoint still resumes its folder."""
         if self.is_expert or self.agent.startswith("zoo:"):
             return self.agent
-        return str(self.checkpoint.resolve())
+        path = self.checkpoint.resolve()
+        try:
+            return str(path.relative_to(Path.cwd().resolve()))
+        except ValueError:
+            return str(path)
 
     def content_hash(self) -> str | None:
         """SHA-256 of the checkpoint file (None for the expert): a resume must drive the same weights, even
@@ -542,7 +550,7 @@ def run_benchmark(
     """
     executor.check()
     if agent_factory is None:
-        spec.validate()
+        spec.validate(build=False)
     if workers < 1:
         raise ValueError(f"--workers must be >= 1, got {workers}")
     k = EPISODES_PER_WORKER if episodes_per_worker is None else episodes_per_worker
@@ -559,6 +567,9 @@ def run_benchmark(
 
     info = {"agent": spec.identity(), "agent_options": spec.options(), "label": label or out.name,
             "agent_sha256": spec.content_hash(), "yawil_version": yawil.__version__}
+    check_run_info(out, info, label_given=label is not None, write=False)  # another agent's folder: before the build
+    if agent_factory is None:
+        spec.validate()
     t0 = time.perf_counter()
     with folder_lock(out, "results folder"), EpisodeLog(out) as log:
         check_run_info(out, info, label_given=label is not None)

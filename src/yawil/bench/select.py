@@ -127,7 +127,8 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
         "select", help="choose a checkpoint by driving validation episodes (closed-loop selection)",
         description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter,
     )
-    p.add_argument("checkpoints", nargs="+", help="candidate checkpoints (e.g. step_*.pt, best.pt, last.pt)")
+    p.add_argument("checkpoints", nargs="+",
+                   help="candidate checkpoints (e.g. step_*.pt, best.pt, last.pt, or zoo:NAME)")
     p.add_argument("--out", required=True, help="results folder: one sub-folder per candidate, selection.json")
     p.add_argument("--routes", type=int, default=3, help=f"routes per task of {', '.join(VALIDATION_TASKS)} (default 3)")
     p.add_argument("--workers", type=int, default=1, help="processes driving episodes (default 1)")
@@ -142,7 +143,9 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
 
 def run(args: argparse.Namespace) -> int:
     try:
-        paths = [Path(c) for c in args.checkpoints]
+        from yawil.zoo import resolve_checkpoint
+
+        paths = [resolve_checkpoint(c) for c in args.checkpoints]  # zoo:NAME: a zoo model as a candidate
         for p in paths:
             if not p.is_file():
                 raise ValueError(f"{p}: no such checkpoint file")

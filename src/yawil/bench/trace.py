@@ -48,8 +48,11 @@ def find_episode(key: str, suite: str = "all") -> Episode:
         raise ValueError(f"episode {key!r}: expected task/condition/weather/route/seed, "
                          "e.g. regular/training/HardRainNoon/6/0 (the key of a record)")
     task, condition, _, route, seed = parts
-    found = [e for e in episodes(suite, conditions=[condition], tasks=[task], routes=route, seeds=int(seed) + 1)
-             if e.key == key]
+    try:
+        found = [e for e in episodes(suite, conditions=[condition], tasks=[task], routes=route, seeds=int(seed) + 1)
+                 if e.key == key]
+    except ValueError as err:  # the suite's words (--routes, --tasks) name options trace does not have
+        raise ValueError(f"episode {key!r}: {str(err).replace('--routes', 'route').replace('--', '')}") from None
     if not found:
         raise ValueError(f"episode {key!r}: not an episode of suite {suite!r} (check the weather: it must be one "
                          "of the condition's)")

@@ -115,6 +115,20 @@ def config_from_args(args: argparse.Namespace) -> Any:
     )
 
 
+def _check_carla(town: str, factory: Any) -> None:
+    """The CARLA map name and every server answering, before any folder is made: a missing server was a worker's
+    traceback (or a C++ abort) after the dataset folder existed."""
+    from yawil.sim.carla.errors import CarlaSetupError
+    from yawil.sim.carla.world import carla_town
+
+    carla_town(town)
+    for make in factory if isinstance(factory, tuple) else (factory,):
+        try:
+            make().close()
+        except CarlaSetupError as err:
+            raise ValueError(str(err)) from None
+
+
 def run(args: argparse.Namespace) -> int:
     from yawil.data.collect import collect
     from yawil.data.collect_config import DEFAULT_FRAMES
@@ -146,6 +160,8 @@ def run(args: argparse.Namespace) -> int:
     factory = world_factory(args.backend, **({} if args.backend == "embedded" else connection_from_args(args).kwargs()))
     if servers is not None:
         factory = server_worlds(servers, args.timeout)  # type: ignore[assignment]
+    if args.backend != "embedded":
+        _check_carla(args.town, factory)
     summary = collect(args.out, verify=args.verify, town=args.town, weathers=args.weathers, frames=args.frames, episodes=args.episodes,
                       workers=args.workers, seed=args.seed, config=cfg, progress=not args.quiet,
                       world_factory=factory, expert_config=expert, executor=executor,

@@ -25,6 +25,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     src.add_argument("--frames", help="a dataset folder or one episode .h5 file to draw frames from")
     src.add_argument("--episode", action="store_true", help="drive a fresh episode and make a video")
     p.add_argument("--out", required=True, help="output folder")
+    p.add_argument("--force", action="store_true",
+                   help="write into an --out folder that holds other files (same-named ones are replaced)")
     p.add_argument("--count", type=int, default=6, help="frames to explain with --frames (default 6)")
     p.add_argument("--seed", type=int, default=0, help="seed for frame choice / the episode (default 0)")
     p.add_argument("--alpha", type=float, default=0.5, help="weight of the colour map in the blend (default 0.5)")
@@ -42,11 +44,13 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 def run(args: argparse.Namespace) -> int:
     from yawil.agent import Agent
     from yawil.explain.attention import EpisodeVideo, explain_episode, explain_frames
+    from yawil.fileio import check_output_folder, claim_output_folder
 
     if args.count < 1 or args.steps < 1 or args.every < 1:
         raise SystemExit("yawil explain: --count, --steps and --every must be >= 1")
+    check_output_folder(args.out, "--out", "explain", args.force)
     agent = Agent.from_checkpoint(args.checkpoint)
-    out = Path(args.out)
+    out = claim_output_folder(args.out, "explain")
     if args.frames:
         paths = explain_frames(agent, Path(args.frames), out, args.count, args.seed, args.alpha)
         print(f"wrote {len(paths) - 1} frame figures and {paths[-1]}")

@@ -4,6 +4,7 @@ dataset's guidance width), and the check that a resumed run continues the same r
 from __future__ import annotations
 
 import sys
+import warnings
 from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
@@ -44,8 +45,10 @@ def open_splits(cfg: TrainConfig) -> tuple[Any, Any, dict[str, Any]]:
               file=sys.stderr)
         fraction = 0.0
     train_eps, val_eps = data.split_episodes(cfg.data, fraction, cfg.seed)
-    train_ds = data.DrivingDataset(cfg.data, episodes=train_eps)
-    val_ds = data.DrivingDataset(cfg.data, episodes=val_eps)
+    with warnings.catch_warnings():  # a skipped file is refused below in one line, not warned about first
+        warnings.simplefilter("ignore", RuntimeWarning)
+        train_ds = data.DrivingDataset(cfg.data, episodes=train_eps)
+        val_ds = data.DrivingDataset(cfg.data, episodes=val_eps)
     skipped = train_ds.skipped + val_ds.skipped
     if skipped:  # training on what is left would silently be another run (half the data, or no validation)
         path, why = skipped[0]

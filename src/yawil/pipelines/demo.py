@@ -169,9 +169,10 @@ def zoo_spec(name: str) -> Any:
 
 def run_demo(out: Path, budget: DemoBudget, seed: int = 0) -> Path:
     from yawil.guidance import GuidanceConfig
+    from yawil.fileio import make_folder
     from yawil.zoo import read_card
 
-    out.mkdir(parents=True, exist_ok=True)
+    make_folder(out, "demo")
     t0 = time.perf_counter()
     _say(f"budget: {json.dumps(asdict(budget))}")
     card = read_card(budget.zoo_model)  # a missing zoo model fails before any stage

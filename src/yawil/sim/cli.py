@@ -29,7 +29,12 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     v.add_argument("--frames", type=int, default=3, help="camera frames to write, spread over the steps (default 3)")
     v.add_argument("--render-backend", default="software", choices=("software", "opengl"),
                    help="camera renderer (default software)")
+    v.add_argument("--semantic", action="store_true",
+                   help="also write the semantic camera's classes, colourised, as semantic_NNNN.png beside each "
+                        "camera_NNNN.png (docs/rendering.md lists the classes and colours)")
     v.add_argument("--out", default="view", help="output directory (default view)")
+    v.add_argument("--force", action="store_true",
+                   help="write into an --out folder that holds other files (same-named ones are replaced)")
     r = sub.add_parser("routes", help="print random routes of a town (start, goal, length, lights)")
     r.add_argument("--town", default="town01")
     r.add_argument("--seed", type=int, default=0)
@@ -69,14 +74,13 @@ def follow_route(obs, target_speed: float = 5.0):  # type: ignore[no-untyped-def
 
 
 def _view(args: argparse.Namespace) -> int:
-    from pathlib import Path
 
     import matplotlib
 
     matplotlib.use("Agg")
     from PIL import Image
 
-    from yawil.fileio import atomic_path
+    from yawil.fileio import atomic_path, check_output_folder, claim_output_folder
     from yawil.sim.town.render.birdseye import draw_birdseye
     from yawil.sim.town.world import EmbeddedWorld
     from yawil.sim.types import Scenario
@@ -88,11 +92,11 @@ def _view(args: argparse.Namespace) -> int:
 
     resolve_town(args.town)  # both named before a folder is made
     get_weather(args.weather)
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
+    check_output_folder(args.out, "--out", "sim view", args.force)
+    out = claim_output_folder(args.out, "sim view")
     world = EmbeddedWorld(render_backend=args.render_backend)
     scenario = Scenario(town=args.town, weather=args.weather, vehicles=args.vehicles, pedestrians=args.pedestrians,
-                        camera=True)
+                        camera=True, semantic=bool(getattr(args, "semantic", False)))
     written = []
     try:
         obs = world.reset(scenario, args.seed)
@@ -102,6 +106,13 @@ def _view(args: argparse.Namespace) -> int:
                 path = out / f"camera_{step:04d}.png"
                 with atomic_path(path) as tmp:
                     Image.fromarray(obs.image).save(tmp)
+                written.append(path)
+            if step in shots and obs.semantic is not None:
+                from yawil.sim.semantic import colorize
+
+                path = out / f"semantic_{step:04d}.png"
+                with atomic_path(path) as tmp:
+                    Image.fromarray(colorize(obs.semantic)).save(tmp)
                 written.append(path)
             if step < args.steps:
                 obs = world.step(follow_route(obs))

@@ -118,7 +118,8 @@ class Scenario:
 
     `town` is a built-in name (town01, town02, square) or a path to a layout JSON file. `start` and `goal`
     are poses snapped by the backend to the nearest lane of matching direction; None draws them at random
-    from the seed. `timeout_s` None means NoCrash's formula from the route length.
+    from the seed. `timeout_s` None means NoCrash's formula from the route length. `semantic` adds the
+    semantic camera: `Observation.semantic`, class ids of `yawil.sim.semantic` pixel-aligned with the image.
     """
 
     town: str = "town01"
@@ -130,6 +131,7 @@ class Scenario:
     timeout_s: float | None = None
     camera: bool = True
     min_route_length: float = 0.0  # for random routes: draw until at least this long (metres)
+    semantic: bool = False
 
 
 def validate_scenario(sc: object) -> Scenario:
@@ -148,6 +150,8 @@ def validate_scenario(sc: object) -> Scenario:
     if sc.timeout_s is not None and (isinstance(sc.timeout_s, bool) or not isinstance(sc.timeout_s, (int, float))
                                      or not math.isfinite(sc.timeout_s) or sc.timeout_s <= 0):
         raise ValueError(f"Scenario.timeout_s must be a positive number of seconds or None, got {sc.timeout_s!r}")
+    if not isinstance(sc.semantic, (bool, np.bool_)):
+        raise ValueError(f"Scenario.semantic must be True or False, got {sc.semantic!r}")
     if not isinstance(sc.min_route_length, (int, float)) or not 0 <= sc.min_route_length < 1e5:
         raise ValueError(f"Scenario.min_route_length must be a non-negative number of metres, got {sc.min_route_length!r}")
     for name in ("start", "goal"):
@@ -247,6 +251,7 @@ class Observation:
     bounds: tuple[float, float, float, float]  # (xmin, ymin, xmax, ymax) of the map, for XY guidance
     weather: str
     privileged: Privileged = field(default_factory=Privileged)
+    semantic: np.ndarray | None = None  # (88, 200) uint8 class ids (yawil.sim.semantic), with Scenario.semantic
 
 
 class SimulatorError(RuntimeError):

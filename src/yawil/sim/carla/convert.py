@@ -4,16 +4,19 @@ CARLA's map frame is left-handed (x forward/east, y to the south of yawil's nort
 clockwise seen from above; yawil's is right-handed with yaw in radians counter-clockwise. The conversion is
 y -> -y and yaw -> -radians(yaw), the same both ways. Controls are the same as CARLA's (steer > 0 = right).
 Functions taking CARLA objects only read their attributes, so they import nothing from `carla`; the ones
-building CARLA objects import it when called.
+building CARLA objects import it when called. The semantic camera's tags map to yawil's classes
+(`yawil.sim.semantic`) through `CARLA_LABEL_CLASSES`.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
 
+from yawil.sim import semantic as sem
 from yawil.sim.types import Control, Pose, wrap_angle
 
 CAMERA_WIDTH, CAMERA_HEIGHT, CAMERA_FOV = 800, 600, 100.0
@@ -99,3 +102,55 @@ def crop_resize(rgb: np.ndarray) -> np.ndarray:
 def observation_image(image: Any) -> np.ndarray:
     """A carla.Image from the protocol camera as Observation.image (88x200x3 uint8 RGB)."""
     return crop_resize(bgra_to_rgb(image.raw_data, int(image.width), int(image.height)))
+
+
+# CARLA's semantic tags (the names of carla.CityObjectLabel) as yawil classes. Both generations are named: the
+# tags of 0.9.11-0.9.13 ("Vehicles", "Roads" = 7, ...) and the CityScapes-ordered ones of 0.9.14+ ("Car", "Roads"
+# = 1, ...); the values come from the client package at run time (`carla_tag_values`), which equals the server's
+# version. CARLA has no crosswalk tag and no light state in its tags (a light is
+# traffic_light whatever it shows). A tag not listed here reads as unlabeled.
+CARLA_LABEL_CLASSES: dict[str, str] = {
+    "NONE": "unlabeled", "None": "unlabeled", "Unlabeled": "unlabeled",
+    "Roads": "road", "RoadLines": "lane_marking", "Sidewalks": "sidewalk",
+    "Terrain": "terrain", "Ground": "terrain", "Water": "terrain", "RailTrack": "terrain",
+    "Buildings": "building", "Walls": "building", "Bridge": "building",
+    "Poles": "pole", "TrafficSigns": "pole", "TrafficLight": "traffic_light",
+    "Vegetation": "vegetation", "Sky": "sky",
+    "Fences": "static", "GuardRail": "static", "Static": "static", "Dynamic": "static", "Other": "static", "Rock": "static",
+    "Vehicles": "vehicle", "Car": "vehicle", "Truck": "vehicle", "Bus": "vehicle", "Train": "vehicle",
+    "Motorcycle": "vehicle", "Bicycle": "vehicle",
+    "Pedestrians": "pedestrian", "Rider": "pedestrian",
+}
+
+
+def carla_tag_values() -> dict[str, int]:
+    """The installed client's semantic tags, name -> value (carla.CityObjectLabel; "Any" is a filter, left out)."""
+    import carla
+
+    return {str(k): int(v) for k, v in carla.CityObjectLabel.names.items() if str(k) != "Any"}
+
+
+def semantic_lut(tags: Mapping[str, int]) -> np.ndarray:
+    """(256,) uint8: the yawil class id of each CARLA tag value, given the tags' names and values."""
+    lut = np.full(256, sem.UNLABELED, dtype=np.uint8)
+    for name, value in tags.items():
+        if not 0 <= int(value) < 256:
+            raise ValueError(f"CARLA tag {name!r} = {value}: a semantic tag is one byte")
+        lut[int(value)] = sem.CLASS_ID[CARLA_LABEL_CLASSES.get(name, "unlabeled")]
+    return lut
+
+
+def observation_semantic(image: Any, lut: np.ndarray) -> np.ndarray:
+    """A carla.Image of the semantic camera (tag in the red channel) as Observation.semantic: (88, 200) uint8
+    yawil class ids. The crop is the RGB camera's, and the resize takes each output pixel's centre (ids do not
+    blend), which is where the embedded renderer samples its pixels too."""
+    width, height = int(image.width), int(image.height)
+    buf = np.frombuffer(image.raw_data, dtype=np.uint8)
+    if buf.size != width * height * 4 or height < CROP_BOTTOM:
+        raise ValueError(f"semantic image has {buf.size} bytes for {width}x{height}; expected BGRA with at least "
+                         f"{CROP_BOTTOM} rows")
+    rows = CROP_TOP + ((np.arange(OUT_HEIGHT) + 0.5) * (CROP_BOTTOM - CROP_TOP) / OUT_HEIGHT).astype(np.int64)
+    cols = ((np.arange(OUT_WIDTH) + 0.5) * width / OUT_WIDTH).astype(np.int64)
+    red = buf.reshape(height, width, 4)[:, :, 2]
+    out: np.ndarray = lut[red[np.ix_(rows, cols)]]
+    return out

@@ -2,7 +2,7 @@
 
 One episode: load Town01/Town02 if needed, synchronous mode at 0.1 s, weather, the route planned on the
 map's topology (`topology.py`), the ego (vehicle.lincoln.mkz_2017) with the protocol camera (800x600, fov 100,
-at (2.0, 0, 1.4), cropped and resized to 200x88), collision and lane-invasion sensors, vehicles through the
+at (2.0, 0, 1.4), cropped and resized to 200x88; its semantic twin when the scenario asks), collision and lane-invasion sensors, vehicles through the
 Traffic Manager and pedestrians with their AI controllers, all seeded. Each step applies the control,
 ticks the server once, reads the ego and its sensors, runs yawil's criteria and returns an Observation in
 yawil's frame. Any RuntimeError of the client during an episode (lost connection, crashed server,
@@ -31,9 +31,12 @@ from yawil.sim.carla.convert import (
     CAMERA_HEIGHT,
     CAMERA_WIDTH,
     camera_transform,
+    carla_tag_values,
     observation_image,
+    observation_semantic,
     pose_from_transform,
     pose_to_transform,
+    semantic_lut,
     speed_of,
     vehicle_control,
     xy_to_carla,
@@ -112,6 +115,7 @@ class CarlaWorld:
         self._original_settings: Any = None
         self._actors: list[Any] = []  # everything we spawned, sensors first when destroyed
         self._topologies: dict[str, CarlaTopology] = {}
+        self._sem_lut: np.ndarray | None = None  # CARLA tag -> yawil class, from the client's tags on first use
         self.scenario: Scenario | None = None
         self.connect()
 
@@ -188,7 +192,7 @@ class CarlaWorld:
             else:
                 planned = topo.random_route(r_route, scenario.min_route_length, start=scenario.start, goal=scenario.goal)
             self.scenario, self.topology, self.planned, self.route = scenario, topo, planned, planned.route
-            self._spawn_ego(planned, scenario.camera)
+            self._spawn_ego(planned, scenario.camera, scenario.semantic)
             self._spawn_vehicles(int(scenario.vehicles), r_veh)
             self._spawn_pedestrians(int(scenario.pedestrians), r_ped)
             self._setup_criteria(planned, scenario)
@@ -273,7 +277,7 @@ class CarlaWorld:
             self._actors.append(actor)
         return actor
 
-    def _spawn_ego(self, planned: CarlaRoute, camera: bool) -> None:
+    def _spawn_ego(self, planned: CarlaRoute, camera: bool, semantic: bool = False) -> None:
         import carla
 
         lib = self._world.get_blueprint_library()
@@ -291,26 +295,35 @@ class CarlaWorld:
         extent = ego.bounding_box.extent
         self._ego_half = (float(extent.x), float(extent.y))
         self._images: queue.Queue[Any] = queue.Queue()
+        self._sem_images: queue.Queue[Any] = queue.Queue()
         self._hits: list[tuple[int, int, str]] = []
         self._hits_lock = threading.Lock()
         self.lane_markings_crossed: list[tuple[int, tuple[str, ...]]] = []
-        self._camera = None
-        if camera:
-            cbp = lib.find("sensor.camera.rgb")
+        self._camera = self._sem_camera = None
+        for wanted, bp_id, images in ((camera, "sensor.camera.rgb", self._images),
+                                      (semantic, "sensor.camera.semantic_segmentation", self._sem_images)):
+            if not wanted:
+                continue  # the semantic camera only when the scenario asks for it
+            cbp = lib.find(bp_id)
             for key, value in (("image_size_x", CAMERA_WIDTH), ("image_size_y", CAMERA_HEIGHT), ("fov", CAMERA_FOV)):
                 cbp.set_attribute(key, str(value))
             cam = self._spawn(cbp, camera_transform(), ego)
             if cam is None:
-                raise SimulatorError(f"CARLA at {self.address} could not attach the camera")
-            cam.listen(self._images.put)
-            self._camera = cam
+                raise SimulatorError(f"CARLA at {self.address} could not attach the {bp_id} camera")
+            cam.listen(images.put)
+            if bp_id == "sensor.camera.rgb":
+                self._camera = cam
+            else:
+                self._sem_camera = cam
+                if self._sem_lut is None:
+                    self._sem_lut = semantic_lut(carla_tag_values())
         col = self._spawn(lib.find("sensor.other.collision"), carla.Transform(), ego)
         lane = self._spawn(lib.find("sensor.other.lane_invasion"), carla.Transform(), ego)
         if col is None or lane is None:
             raise SimulatorError(f"CARLA at {self.address} could not attach the collision/lane-invasion sensors")
         col.listen(self._on_collision)
         lane.listen(self._on_lane_invasion)
-        self._sensors = [s for s in (self._camera, col, lane) if s is not None]
+        self._sensors = [s for s in (self._camera, self._sem_camera, col, lane) if s is not None]
 
     def _on_collision(self, event: Any) -> None:
         other = event.other_actor
@@ -405,12 +418,18 @@ class CarlaWorld:
         self._pose = pose_from_transform(self._ego.get_transform())
         self._speed = speed_of(self._ego.get_velocity())
         self._image: Any = None
+        self._sem_image: Any = None
         if self._camera is not None:
-            while True:
-                img = self._images.get(timeout=SENSOR_TIMEOUT)
-                if int(img.frame) >= self._server_frame:
-                    self._image = img
-                    break
+            self._image = self._frame_of(self._images)
+        if getattr(self, "_sem_camera", None) is not None:
+            self._sem_image = self._frame_of(self._sem_images)
+
+    def _frame_of(self, images: queue.Queue[Any]) -> Any:
+        """The camera image of this tick (older ones, left from before a reset, are dropped)."""
+        while True:
+            img = images.get(timeout=SENSOR_TIMEOUT)
+            if int(img.frame) >= self._server_frame:
+                return img
 
     def _drain_collisions(self) -> list[tuple[int, str]]:
         with self._hits_lock:
@@ -488,10 +507,14 @@ class CarlaWorld:
         idx = self.judge.progress.index
         command = RoadOption(int(self.route.options[min(idx + COMMAND_LOOKAHEAD, len(self.route) - 1)]))
         image = observation_image(self._image) if self._image is not None else None
+        semantic = None
+        if self._sem_image is not None and self._sem_lut is not None:
+            semantic = observation_semantic(self._sem_image, self._sem_lut)
         return Observation(
             image=image, speed=self._speed, pose=self._pose, route=self.route, route_index=idx, command=command,
             events=events, time=self.time, frame=self.frame, done=self.done, distance_driven=self.judge.distance.total,
             town=self.scenario.town, bounds=self.bounds, weather=self.scenario.weather, privileged=self._privileged(idx),
+            semantic=semantic,
         )
 
 

@@ -336,6 +336,7 @@ class EmbeddedWorld:
             self._ensure_renderer()
             image = self._renderer.render(self.ego.pose, self.actor_views(), self.light_states(), self.scenario.weather,
                                           self.frame)
+        semantic = self._render_semantic() if self.scenario.semantic else None
         return Observation(
             image=image,
             speed=self.ego.speed,
@@ -352,4 +353,11 @@ class EmbeddedWorld:
             bounds=self.town.geometry.bounds,
             weather=self.scenario.weather,
             privileged=self._privileged(idx),
+            semantic=semantic,
         )
+
+    def _render_semantic(self) -> np.ndarray:
+        """The semantic camera's class ids, pixel-aligned with the image (it needs no RGB render)."""
+        self._ensure_renderer()
+        ids: np.ndarray = self._renderer.render_semantic(self.ego.pose, self.actor_views(), self.light_states())
+        return ids

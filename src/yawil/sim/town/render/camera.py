@@ -67,6 +67,18 @@ def camera_pose(ego: Pose, config: CameraConfig = CameraConfig()) -> tuple[float
     return ego.x + c * mx - s * my, ego.y + s * mx + c * my, mz, ego.yaw
 
 
+def sky_card_extent(config: CameraConfig = CameraConfig()) -> tuple[float, float, float, float]:
+    """(distance, half width, top, bottom) in camera metres of the camera-fixed sky card: just inside the far
+    plane, 5 % larger than the view; its part below the horizon (z < 0) shows the far ground. The RGB sky and
+    the semantic camera's far ground share it, so that both cover the same pixels."""
+    cfg = config
+    dist = cfg.far * 0.9
+    half_w = dist * (cfg.full_width / 2 / cfg.focal_px) * 1.05
+    top = dist * (cfg.film_offset_px + (cfg.crop_bottom - cfg.crop_top) / 2) / cfg.focal_px * 1.05
+    bottom = dist * (cfg.film_offset_px - (cfg.crop_bottom - cfg.crop_top) / 2) / cfg.focal_px * 1.05
+    return dist, half_w, top, bottom
+
+
 def reference_projection(ego: Pose, points: np.ndarray, config: CameraConfig = CameraConfig()) -> np.ndarray:
     """Where world points land in the 200x88 image by the protocol's own pipeline.
 

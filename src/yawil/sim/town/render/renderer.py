@@ -6,7 +6,7 @@ wet road and puddles; the camera model is in `camera` and the haze and rain in `
 one ShowBase per process, so we use a module-level GraphicsEngine and one offscreen buffer per renderer; a
 renderer's buffer is active only while it renders, so several renderers may coexist.
 
-One file of ~480 lines on purpose: its parts share that module-level engine and the Panda3D state it
+One file of ~510 lines on purpose: its parts share that module-level engine and the Panda3D state it
 holds; the parts without Panda3D (camera, meshes, weather effects) are already the modules beside it.
 """
 
@@ -20,7 +20,7 @@ from typing import Any
 import numpy as np
 
 from yawil.sim.town.map.geometry import ActorView, TownGeometry
-from yawil.sim.town.render.camera import CameraConfig, camera_pose
+from yawil.sim.town.render.camera import CameraConfig, camera_pose, sky_card_extent
 from yawil.sim.town.render.scene_mesh import (
     PUDDLE_GROUPS,
     Mesh,
@@ -35,6 +35,7 @@ from yawil.sim.types import Pose
 from yawil.sim.weather import Weather, get_weather
 
 BACKENDS: dict[str, str] = {"software": "p3tinydisplay", "opengl": "p3headlessgl"}
+SEMANTIC_TAG = "yawil-class"  # on each actor shape node, its kind: the semantic camera (`semantic`) colours by it
 LIGHT_STATES: tuple[str, ...] = ("red", "yellow", "green", "off")
 
 _SKIN = (0.86, 0.68, 0.56)
@@ -225,6 +226,7 @@ class CameraRenderer:
         self._shapes: dict[tuple[str, float, float, float], tuple[Any, Any]] = {}
         self._slots: list[_Slot] = []
         self._slot_of: dict[int, _Slot] = {}
+        self._semantic: Any = None  # the semantic camera's scene, built on the first render_semantic
 
     def _build_nodes(self, tiles: Tiles) -> None:
         """Static and flat-road tiles under 4x4-tile groups, so culling prunes whole groups at once."""
@@ -327,6 +329,23 @@ class CameraRenderer:
             self._buf.setActive(False)
         return post_effects(self._grab(), self._haze, self._haze_color, self._rain_layers, int(frame))
 
+    def render_semantic(self, ego: Pose, actors: Sequence[ActorView], light_states: Mapping[int, str]) -> np.ndarray:
+        """The (height, width) uint8 class ids (`yawil.sim.semantic.CLASSES`) of what `render` shows from `ego`,
+        pixel for pixel, whatever the weather. Its scene and buffer are built on the first call, so that a
+        renderer never asked pays nothing; the RGB images are the same either way."""
+        if self._closed:
+            raise RuntimeError("CameraRenderer.render_semantic called after close()")
+        if not all(math.isfinite(v) for v in (ego.x, ego.y, ego.yaw)):
+            raise ValueError(f"render_semantic: ego pose must be finite, got {ego}")
+        if self._semantic is None:
+            from yawil.sim.town.render.semantic import SemanticPass
+
+            self._semantic = SemanticPass(self)
+        cam = camera_pose(ego, self.config)
+        self._set_actors(actors, cam)
+        ids: np.ndarray = self._semantic.render(cam, light_states)
+        return ids
+
     def _grab(self) -> np.ndarray:
         raw = np.frombuffer(self._tex.getRamImage(), np.uint8)
         comps = raw.size // (self.config.width * self.config.height)
@@ -399,6 +418,8 @@ class CameraRenderer:
     def _shape(self, key: tuple[str, float, float, float]) -> tuple[Any, Any]:
         if key not in self._shapes:
             self._shapes[key] = _actor_shape(*key)
+            for node in self._shapes[key]:  # the semantic camera's flat colour per kind (no effect on RGB)
+                node.setTag(SEMANTIC_TAG, key[0])
         return self._shapes[key]
 
     def _set_weather(self, name: str) -> None:
@@ -438,13 +459,9 @@ class CameraRenderer:
 
     def _build_sky(self, w: Weather) -> None:
         """A camera-fixed card: sky gradient with soft cloud blobs above the horizon, far ground below."""
-        cfg = self.config
         if self._sky is not None:
             self._sky.removeNode()
-        dist = cfg.far * 0.9
-        half_w = dist * (cfg.full_width / 2 / cfg.focal_px) * 1.05
-        top = dist * (cfg.film_offset_px + (cfg.crop_bottom - cfg.crop_top) / 2) / cfg.focal_px * 1.05
-        bottom = dist * (cfg.film_offset_px - (cfg.crop_bottom - cfg.crop_top) / 2) / cfg.focal_px * 1.05
+        dist, half_w, top, bottom = sky_card_extent(self.config)
         el, sun = math.radians(w.sun_elevation_deg), np.asarray(w.sun_color)
         far_ground = np.clip(np.asarray(self.geometry.style.ground) * (np.asarray(w.ambient) + sun * max(0.0, math.sin(el))), 0, 1)
         rng = np.random.default_rng(zlib.crc32(w.name.encode()))
@@ -477,6 +494,9 @@ class CameraRenderer:
         if self._closed:
             return
         self._closed = True
+        if self._semantic is not None:
+            self._semantic.close()
+            self._semantic = None
         _engine().removeWindow(self._buf)
         self.root.removeNode()
         self._buf = None

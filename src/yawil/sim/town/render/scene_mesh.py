@@ -2,7 +2,8 @@
 
 The renderer bakes each (layer, tile) mesh into one Geom once per town; this module builds those meshes
 (ground, roads, sidewalks, markings, buildings, props, light posts and heads, puddles), validates the
-geometry on the way, and needs Panda3D only to bake.
+geometry on the way, and needs Panda3D only to bake. Every polygon carries its semantic class
+(`yawil.sim.semantic`), so that the semantic camera draws the very same triangles in class colours.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ from typing import Any
 
 import numpy as np
 
+from yawil.sim import semantic as sem
 from yawil.sim.town.map.geometry import Box, LightPost, Marking, TownGeometry
 
 _GROUND_Z, _ROAD_Z, _PUDDLE_Z, _MARK_Z, _SIDEWALK_H = -0.03, 0.0, 0.01, 0.02, 0.15
@@ -25,19 +27,22 @@ _HEAD_BOTTOM, _HEAD_H, _HEAD_W, _HEAD_D, _POLE_H = 2.6, 1.1, 0.5, 0.35, 3.75
 
 # ----------------------------------------------------------------------------------------------- meshes
 class Mesh:
-    """Indexed triangles with per-vertex normal and colour, built with numpy, baked into one Geom."""
+    """Indexed triangles with per-vertex normal and colour, built with numpy, baked into one Geom; each
+    polygon keeps its semantic class id in `labels` (one per entry of `pos`)."""
 
     def __init__(self) -> None:
         self.pos: list[np.ndarray] = []
         self.nrm: list[np.ndarray] = []
         self.col: list[np.ndarray] = []
         self.idx: list[np.ndarray] = []
+        self.labels: list[int] = []
         self.count = 0
 
     def __len__(self) -> int:
         return self.count
 
-    def poly(self, pts: np.ndarray, color: Sequence[float] | np.ndarray, normal: Sequence[float]) -> None:
+    def poly(self, pts: np.ndarray, color: Sequence[float] | np.ndarray, normal: Sequence[float],
+             label: int = sem.UNLABELED) -> None:
         """A planar convex polygon (M, 3) as a fan, wound to face `normal`; colour per polygon or vertex."""
         pts = np.asarray(pts, dtype=np.float32)
         m = pts.shape[0]
@@ -53,17 +58,19 @@ class Mesh:
         self.nrm.append(np.broadcast_to(n, (m, 3)))
         self.col.append(np.concatenate([cols, np.ones((m, 1), np.float32)], axis=1))
         self.idx.append(fan + self.count)
+        self.labels.append(label)
         self.count += m
 
     def box(self, x: float, y: float, z: float, yaw: float, length: float, width: float, height: float,
-            color: Sequence[float], skip_front: bool = False, window_color: Sequence[float] | None = None) -> None:
+            color: Sequence[float], skip_front: bool = False, window_color: Sequence[float] | None = None,
+            label: int = sem.UNLABELED) -> None:
         """An oriented box; with `window_color` its sides get a darker band per floor."""
         c, s = math.cos(yaw), math.sin(yaw)
         fx, fy, lx, ly = c * length / 2, s * length / 2, -s * width / 2, c * width / 2
         base = np.array([[x + fx + lx, y + fy + ly], [x - fx + lx, y - fy + ly],
                          [x - fx - lx, y - fy - ly], [x + fx - lx, y + fy - ly]])
         top = z + height
-        self.poly(np.column_stack([base, np.full(4, top)]), color, (0, 0, 1))
+        self.poly(np.column_stack([base, np.full(4, top)]), color, (0, 0, 1), label)
         bands = [(z, top, color)]
         if window_color is not None and height >= 4.0:
             # a 4 m ground floor with shop windows at 1.8-3.4 m (no band edge at the camera's 1.4 m, which
@@ -83,7 +90,13 @@ class Mesh:
             nn = math.hypot(nx, ny) or 1.0
             for z0, z1, col in bands:
                 q = np.array([[a[0], a[1], z0], [b[0], b[1], z0], [b[0], b[1], z1], [a[0], a[1], z1]])
-                self.poly(q, col, (nx / nn, ny / nn, 0.0))
+                self.poly(q, col, (nx / nn, ny / nn, 0.0), label)
+
+    def vertex_labels(self) -> np.ndarray:
+        """(count,) uint8 class id of every vertex."""
+        if not self.pos:
+            return np.zeros(0, np.uint8)
+        return np.repeat(np.asarray(self.labels, np.uint8), [len(p) for p in self.pos])
 
     def geom_node(self, name: str) -> Any:
         from panda3d.core import GeomNode
@@ -200,20 +213,22 @@ def build_static(geo: TownGeometry, tiles: Tiles, rng: np.random.Generator) -> N
             col = np.clip(ground * (1.0 + rng.uniform(-0.05, 0.05)), 0, 1)
             q = np.array([[x0, y0, _GROUND_Z], [x0 + _CELL, y0, _GROUND_Z],
                           [x0 + _CELL, y0 + _CELL, _GROUND_Z], [x0, y0 + _CELL, _GROUND_Z]])
-            tiles.at("ground", x0 + 5, y0 + 5).poly(q, col, (0, 0, 1))
+            tiles.at("ground", x0 + 5, y0 + 5).poly(q, col, (0, 0, 1), sem.TERRAIN)
     road = np.asarray(style.road)
     for k, poly in enumerate(geo.road_polygons):
         poly = _check_poly(poly, f"road_polygons[{k}]", geo.name)
         for piece in clip_to_cells(poly, _CELL):
             col = np.clip(road * (1.0 + rng.uniform(-0.03, 0.03)), 0, 1)
             c = piece.mean(0)
-            tiles.at("road", c[0], c[1]).poly(np.column_stack([piece, np.full(len(piece), _ROAD_Z)]), col, (0, 0, 1))
+            tiles.at("road", c[0], c[1]).poly(np.column_stack([piece, np.full(len(piece), _ROAD_Z)]), col, (0, 0, 1),
+                                              sem.ROAD)
     walk = np.asarray(style.sidewalk)
     for k, poly in enumerate(geo.sidewalk_polygons):
         poly = _check_poly(poly, f"sidewalk_polygons[{k}]", geo.name)
         for piece in clip_to_cells(poly, _CELL):
             c = piece.mean(0)
-            tiles.at("static", c[0], c[1]).poly(np.column_stack([piece, np.full(len(piece), _SIDEWALK_H)]), walk, (0, 0, 1))
+            tiles.at("static", c[0], c[1]).poly(np.column_stack([piece, np.full(len(piece), _SIDEWALK_H)]), walk,
+                                                (0, 0, 1), sem.SIDEWALK)
         sign = 1.0 if _signed_area(poly) > 0 else -1.0
         for i in range(len(poly)):
             a, b = poly[i], poly[(i + 1) % len(poly)]
@@ -221,28 +236,36 @@ def build_static(geo: TownGeometry, tiles: Tiles, rng: np.random.Generator) -> N
             n /= np.linalg.norm(n) or 1.0
             q = np.array([[a[0], a[1], _ROAD_Z], [b[0], b[1], _ROAD_Z], [b[0], b[1], _SIDEWALK_H], [a[0], a[1], _SIDEWALK_H]])
             c = (a + b) / 2
-            tiles.at("static", c[0], c[1]).poly(q, walk * 0.8, (n[0], n[1], 0))
+            tiles.at("static", c[0], c[1]).poly(q, walk * 0.8, (n[0], n[1], 0), sem.SIDEWALK)
     for k, m in enumerate(geo.markings):
         _add_marking(tiles, m, f"markings[{k}]", geo.name)
     for b in geo.buildings:
         _check_box(b, geo.name)
         window = tuple(0.3 * np.asarray(b.color) + np.array([0.05, 0.06, 0.09]))
-        tiles.at("near", b.x, b.y).box(b.x, b.y, b.z, b.yaw, b.length, b.width, b.height, b.color, window_color=window)
-        tiles.at("far", b.x, b.y).box(b.x, b.y, b.z, b.yaw, b.length, b.width, b.height, b.color)
+        tiles.at("near", b.x, b.y).box(b.x, b.y, b.z, b.yaw, b.length, b.width, b.height, b.color, window_color=window,
+                                       label=sem.BUILDING)
+        tiles.at("far", b.x, b.y).box(b.x, b.y, b.z, b.yaw, b.length, b.width, b.height, b.color, label=sem.BUILDING)
     for p in geo.props:
         _check_box(p, geo.name)
         mesh = tiles.at("static", p.x, p.y)
         if p.kind == "tree":
             trunk = min(0.3, p.width * 0.2)
-            mesh.box(p.x, p.y, p.z, p.yaw, trunk, trunk, p.height * 0.4, (0.35, 0.25, 0.15))
-            mesh.box(p.x, p.y, p.z + p.height * 0.4, p.yaw, p.length, p.width, p.height * 0.6, p.color)
+            mesh.box(p.x, p.y, p.z, p.yaw, trunk, trunk, p.height * 0.4, (0.35, 0.25, 0.15), label=sem.VEGETATION)
+            mesh.box(p.x, p.y, p.z + p.height * 0.4, p.yaw, p.length, p.width, p.height * 0.6, p.color,
+                     label=sem.VEGETATION)
         else:
-            mesh.box(p.x, p.y, p.z, p.yaw, p.length, p.width, p.height, p.color)
+            mesh.box(p.x, p.y, p.z, p.yaw, p.length, p.width, p.height, p.color, label=prop_class(p.kind))
     for lp in geo.light_posts:
         mesh = tiles.at("static", lp.x, lp.y)
-        mesh.box(lp.x, lp.y, 0.0, lp.yaw, 0.16, 0.16, _POLE_H, (0.22, 0.22, 0.24))
+        mesh.box(lp.x, lp.y, 0.0, lp.yaw, 0.16, 0.16, _POLE_H, (0.22, 0.22, 0.24), label=sem.POLE)
         hx, hy = _head_centre(lp)
-        mesh.box(hx, hy, _HEAD_BOTTOM, lp.yaw + math.pi, _HEAD_D, _HEAD_W, _HEAD_H, (0.1, 0.1, 0.1), skip_front=True)
+        mesh.box(hx, hy, _HEAD_BOTTOM, lp.yaw + math.pi, _HEAD_D, _HEAD_W, _HEAD_H, (0.1, 0.1, 0.1), skip_front=True,
+                 label=sem.TRAFFIC_LIGHT)
+
+
+def prop_class(kind: str) -> int:
+    """The semantic class of a prop by its `Box.kind` (trees are drawn, and labelled, apart)."""
+    return {"pole": sem.POLE, "tree": sem.VEGETATION}.get(kind, sem.STATIC)
 
 
 def build_lamps(geo: TownGeometry, tiles: Tiles) -> dict[int, tuple[tuple[int, int], int]]:
@@ -265,7 +288,7 @@ def build_lamps(geo: TownGeometry, tiles: Tiles) -> dict[int, tuple[tuple[int, i
         for i in range(3):
             z0, z1 = _HEAD_BOTTOM + i * cell, _HEAD_BOTTOM + (i + 1) * cell
             q = np.array([[fx + lx, fy + ly, z0], [fx - lx, fy - ly, z0], [fx - lx, fy - ly, z1], [fx + lx, fy + ly, z1]])
-            mesh.poly(q, colors[4 * i], (-c, -s, 0))
+            mesh.poly(q, colors[4 * i], (-c, -s, 0), sem.TRAFFIC_LIGHT)
     return rows
 
 
@@ -312,6 +335,7 @@ def _add_marking(tiles: Tiles, m: Marking, field: str, town: str) -> None:
         raise ValueError(f"TownGeometry {town!r}: {field}.points must be a finite (N>=2, 2) polyline, got shape {pts.shape}")
     if m.width <= 0:
         raise ValueError(f"TownGeometry {town!r}: {field}.width must be positive, got {m.width}")
+    label = sem.CROSSWALK if m.kind == "crosswalk" else sem.LANE_MARKING
     seg = np.diff(pts, axis=0)
     lengths = np.linalg.norm(seg, axis=1)
     cum = np.concatenate([[0.0], np.cumsum(lengths)])
@@ -334,7 +358,7 @@ def _add_marking(tiles: Tiles, m: Marking, field: str, town: str) -> None:
             nrm = np.array([-d[1], d[0]]) * (w / 2)
             q2 = np.array([p0 - nrm, p1 - nrm, p1 + nrm, p0 + nrm])
             c = q2.mean(0)
-            tiles.at("marking", c[0], c[1]).poly(np.column_stack([q2, np.full(4, _MARK_Z)]), m.color, (0, 0, 1))
+            tiles.at("marking", c[0], c[1]).poly(np.column_stack([q2, np.full(4, _MARK_Z)]), m.color, (0, 0, 1), label)
 
 
 def build_puddles(geo: TownGeometry, tiles: Tiles, rng: np.random.Generator) -> None:
@@ -357,6 +381,6 @@ def build_puddles(geo: TownGeometry, tiles: Tiles, rng: np.random.Generator) -> 
             shine = rng.uniform(0.85, 1.0)
             for i in range(10):
                 tri = np.array([centre, rim[i], rim[(i + 1) % 10]])
-                mesh.poly(tri, np.array([[shine] * 3, [0.55] * 3, [0.55] * 3]), (0, 0, 1))
+                mesh.poly(tri, np.array([[shine] * 3, [0.55] * 3, [0.55] * 3]), (0, 0, 1), sem.ROAD)
             k += 1
 

@@ -12,13 +12,13 @@ from yawil.data.synthetic import write_synthetic_dataset
 from yawil.pipelines.demo import DemoBudget, write_demo_report
 
 
-def _results(folder: Path, label: str, oks: int, n: int = 4) -> None:
+def _results(folder: Path, label: str, oks: int, n: int = 4, task: str = "straight") -> None:
     check_run_info(folder, {"agent": label, "agent_options": {}, "label": label})
     with EpisodeLog(folder) as log:
         for cond in ("training", "new-town-weather"):
             for rid in range(n):
                 ok = rid < oks
-                log.append({"protocol": PROTOCOL, "suite": "corl2017", "task": "straight", "condition": cond,
+                log.append({"protocol": PROTOCOL, "suite": "corl2017", "task": task, "condition": cond,
                             "weather": "ClearNoon", "route_id": rid, "seed": 0, "success": ok,
                             "reason": None if ok else "collision_static", "km_driven": 0.2, "lane_opposite": 0,
                             "lane_offroad": 0, "red_lights": 0, "lights_passed": 1,
@@ -31,6 +31,7 @@ def test_the_demo_report_says_what_ran_with_its_provenance(tmp_path: Path) -> No
     _results(tmp_path / "results" / "expert", "expert", 4)
     _results(tmp_path / "results" / budget.baseline, budget.baseline, 3)
     _results(tmp_path / "results" / f"zoo-{budget.zoo_model}", f"zoo-{budget.zoo_model}", 4)
+    _results(tmp_path / "results" / f"zoo-{budget.zoo_model}", f"zoo-{budget.zoo_model}", 1, 2, task="regular")
     card = {"model_name": "yilratt", "steps_total": 1500, "commit": "0123456789abcdef", "eval100": {"successes": 89,
             "episodes": 100}, "drive": {"speed_control": "stop", "stop_release": 10.0}, "demo": {"successes": 8},
             "data": {"town": "town01", "weathers": "train", "frames": 20170, "seed": 0},
@@ -43,6 +44,9 @@ def test_the_demo_report_says_what_ran_with_its_provenance(tmp_path: Path) -> No
     assert first < text.index("The whole loop")  # the summary comes first
     assert "<td>expert</td><td>the privileged expert</td><td>8</td><td>8</td>" in text
     assert f"<td>{budget.baseline}</td><td>trained in this run</td><td>6</td><td>8</td><td>ok</td>" in text
+    # the zoo model's guard counts the card's episodes only; its traffic episodes are a row of their own
+    assert f"<td>zoo-{budget.zoo_model}</td><td>zoo</td><td>8</td><td>8</td><td>ok</td>" in text
+    assert f"<td>zoo-{budget.zoo_model}, in traffic (regular)</td><td>zoo</td><td>2</td><td>4</td>" in text
     for command in card["commands"]:  # every command of the zoo model, not only one
         assert command in text
     assert "**" not in text and "`" not in text  # no raw markdown in the HTML

@@ -23,7 +23,7 @@ from yawil.explain.figures import DEFAULT_ALPHA, Explained, frame_figure, grid_f
 
 if TYPE_CHECKING:
     from yawil.agent import Agent
-    from yawil.sim.types import Control
+    from yawil.sim.types import Control, Scenario
 
 
 LAYER_NAMES = ("layer 1", "layer 2", "layer 3")
@@ -145,27 +145,35 @@ class EpisodeVideo:
     every: int = 2  # keep every Nth step in the video
 
 
-def explain_episode(agent: Agent, out: Path, episode: EpisodeVideo = EpisodeVideo(),
-                    alpha: float = DEFAULT_ALPHA) -> Path:
-    """Drive one episode with the agent and write a video of the camera with its heat maps."""
-    from yawil.sim import Scenario, make_world
-    from yawil.video import figure_to_array, write_video
+def episode_scenario(episode: EpisodeVideo) -> Scenario:
+    """The scenario (with the camera) of an `EpisodeVideo`: its benchmark route, or a random route of its town;
+    shared by the video and the closed-loop faithfulness test (`yawil.explain.faithfulness`)."""
+    from yawil.sim import Scenario
 
     if episode.route:
         from yawil.bench.suites import episodes
 
         task, _, rid = episode.route.partition(":")
         eps = episodes("all", [episode.condition], [task], routes=rid or "0", seeds=1)
-        scenario = eps[0].scenario(camera=True)
-    else:
-        scenario = Scenario(
-            town=episode.town,
-            weather=episode.weather,
-            vehicles=episode.vehicles,
-            pedestrians=episode.pedestrians,
-            camera=True,
-            min_route_length=200.0,
-        )
+        scenario: Scenario = eps[0].scenario(camera=True)
+        return scenario
+    return Scenario(
+        town=episode.town,
+        weather=episode.weather,
+        vehicles=episode.vehicles,
+        pedestrians=episode.pedestrians,
+        camera=True,
+        min_route_length=200.0,
+    )
+
+
+def explain_episode(agent: Agent, out: Path, episode: EpisodeVideo = EpisodeVideo(),
+                    alpha: float = DEFAULT_ALPHA) -> Path:
+    """Drive one episode with the agent and write a video of the camera with its heat maps."""
+    from yawil.sim import make_world
+    from yawil.video import figure_to_array, write_video
+
+    scenario = episode_scenario(episode)
     world = make_world("embedded")
     frames = []
     try:

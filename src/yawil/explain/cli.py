@@ -38,6 +38,26 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--condition", default="new-town-weather", help="--episode with --route: benchmark condition")
     p.add_argument("--steps", type=int, default=300, help="--episode: at most this many steps (default 300)")
     p.add_argument("--every", type=int, default=2, help="--episode: keep every Nth step in the video (default 2)")
+    # The deletion test (yawil.explain.faithfulness; its defaults, stated here so that --help imports nothing).
+    g = p.add_argument_group("faithfulness (--faithfulness; docs/explain.md)")
+    g.add_argument("--faithfulness", action="store_true",
+                   help="the deletion test instead of figures: with --frames on --count frames (open loop; writes "
+                        "faithfulness.json/.md/.csv/.png), with --episode at its braking moments (closed loop)")
+    g.add_argument("--ks", default="5,10,20,40", help="--frames: percentages of pixels masked (default 5,10,20,40)")
+    g.add_argument("--fill", choices=("mean", "blur"), default="mean",
+                   help="what masked pixels become: the image's mean colour (default) or the image blurred")
+    g.add_argument("--random", choices=("cells", "pixels"), default="cells",
+                   help="the random baseline: blobs of the maps' own grain (default) or single pixels")
+    g.add_argument("--maps", choices=("auto", "attention", "activation"), default="auto",
+                   help="attention maps, or the channel-mean |activation| of each stage (default: attention where "
+                        "the model has it)")
+    g.add_argument("--select", choices=("all", "braking"), default="all",
+                   help="--frames: draw from every frame, or from those where the expert brakes (default all)")
+    g.add_argument("--mask-k", type=float, default=20.0, help="--episode: percentage of pixels masked (default 20)")
+    g.add_argument("--mask-layer", default="mean",
+                   help="--episode: the map whose top pixels are masked, mean or N (layer N; default mean)")
+    g.add_argument("--horizon", type=int, default=20, help="--episode: steps driven masked per moment (default 20)")
+    g.add_argument("--moments", type=int, default=8, help="--episode: braking moments tested at most (default 8)")
     return p
 
 
@@ -51,6 +71,10 @@ def run(args: argparse.Namespace) -> int:
     check_output_folder(args.out, "--out", "explain", args.force)
     agent = Agent.from_checkpoint(args.checkpoint)
     out = claim_output_folder(args.out, "explain")
+    if args.faithfulness:
+        from yawil.explain.faithfulness import run_from_args
+
+        return run_from_args(agent, args, out)
     if args.frames:
         paths = explain_frames(agent, Path(args.frames), out, args.count, args.seed, args.alpha)
         print(f"wrote {len(paths) - 1} frame figures and {paths[-1]}")

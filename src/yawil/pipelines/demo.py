@@ -55,6 +55,8 @@ class DemoBudget:
     tasks: tuple[str, ...] = ("straight", "one_turn")
     routes: str = "0:3"  # route ids per task and condition
     expert_tasks: tuple[str, ...] = ("straight", "one_turn", "navigation", "regular")
+    zoo_traffic_tasks: tuple[str, ...] = ("regular",)  # the zoo YILRatt also drives these, in traffic
+    zoo_traffic_routes: str = "0:2"  # route ids of those per condition (NoCrash Regular: long routes)
     seeds: int = 1
     bench_workers: int = 2
     explain_frames: int = 6
@@ -74,6 +76,7 @@ class DemoBudget:
         if self.max_minutes is not None and not self.max_minutes > 0:
             raise ValueError(f"demo: max_minutes={self.max_minutes!r}, expected minutes > 0 (or none)")
         parse_range(self.routes, 25)  # the suites' 25 routes per task; names the bad --routes
+        parse_range(self.zoo_traffic_routes, 25)
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:  # type: ignore[type-arg]
@@ -168,8 +171,8 @@ def zoo_spec(name: str) -> Any:
 
 
 def run_demo(out: Path, budget: DemoBudget, seed: int = 0) -> Path:
-    from yawil.guidance import GuidanceConfig
     from yawil.fileio import make_folder
+    from yawil.guidance import GuidanceConfig
     from yawil.zoo import read_card
 
     make_folder(out, "demo")
@@ -219,15 +222,18 @@ def run_demo(out: Path, budget: DemoBudget, seed: int = 0) -> Path:
 
         t = time.perf_counter()
         conds = ["training", "new-town-weather"]
-        drivers = [("expert", AgentSpec("expert"), budget.expert_tasks),
-                   (budget.baseline, AgentSpec(str(base_dir / "last.pt")), budget.tasks),
-                   (f"zoo-{budget.zoo_model}", zoo_spec(budget.zoo_model), budget.tasks)]
+        zoo = f"zoo-{budget.zoo_model}"
+        drivers = [("expert", AgentSpec("expert"), budget.expert_tasks, budget.routes),
+                   (budget.baseline, AgentSpec(str(base_dir / "last.pt")), budget.tasks, budget.routes),
+                   (zoo, zoo_spec(budget.zoo_model), budget.tasks, budget.routes)]
+        if budget.zoo_traffic_tasks:  # the zoo model in traffic too, into its own results folder's other cells
+            drivers.append((zoo, zoo_spec(budget.zoo_model), budget.zoo_traffic_tasks, budget.zoo_traffic_routes))
         if budget.max_steps:
-            drivers.append(("yilratt", AgentSpec(str(run_dir / "best.pt")), budget.tasks))
-        for label, spec, tasks in drivers:
+            drivers.append(("yilratt", AgentSpec(str(run_dir / "best.pt")), budget.tasks, budget.routes))
+        for label, spec, tasks, routes in drivers:
             # a subset of the protocol: route i in weather i mod n (`weather_rule` cycle), like the preset eval100
-            eps = episodes("all", conds, list(tasks), routes=budget.routes, seeds=budget.seeds, weather_rule="cycle")
-            _say(f"3/5 benchmark: {label} on {len(eps)} episodes ({', '.join(tasks)}; routes {budget.routes})")
+            eps = episodes("all", conds, list(tasks), routes=routes, seeds=budget.seeds, weather_rule="cycle")
+            _say(f"3/5 benchmark: {label} on {len(eps)} episodes ({', '.join(tasks)}; routes {routes})")
             run_benchmark(eps, spec.validate(), out / "results" / label, workers=budget.bench_workers, label=label)
         info = {"seconds": time.perf_counter() - t}
         _mark(out, "bench", info)
@@ -270,7 +276,7 @@ def guard(out: Path, budget: DemoBudget, card: dict[str, Any]) -> list[tuple[str
     demo = card.get("demo") or {}
     default = (budget.tasks, budget.routes, budget.seeds) == (DemoBudget.tasks, DemoBudget.routes, DemoBudget.seeds)
     for label, expected in ((budget.baseline, None), (f"zoo-{budget.zoo_model}", demo.get("successes"))):
-        recs = read_records(out / "results" / label / "episodes.jsonl")
+        recs = [r for r in read_records(out / "results" / label / "episodes.jsonl") if r["task"] in budget.tasks]
         n, ok = len(recs), sum(bool(r["success"]) for r in recs)
         if label == budget.baseline:
             want: int | None = int(-(-budget.baseline_expected * n // 1))
@@ -280,11 +286,11 @@ def guard(out: Path, budget: DemoBudget, card: dict[str, Any]) -> list[tuple[str
     return rows
 
 
-def _counts(results: Path) -> tuple[int, int]:
-    """(successes, episodes) of a results folder."""
+def _counts(results: Path, tasks: tuple[str, ...] | None = None) -> tuple[int, int]:
+    """(successes, episodes) of a results folder (of `tasks` only, when given)."""
     from yawil.bench.records import read_records
 
-    recs = read_records(results / "episodes.jsonl")
+    recs = [r for r in read_records(results / "episodes.jsonl") if tasks is None or r["task"] in tasks]
     return sum(bool(r["success"]) for r in recs), len(recs)
 
 
@@ -339,6 +345,11 @@ def write_demo_report(out: Path, budget: DemoBudget, timings: dict[str, float], 
     summary_rows = [("expert", "the privileged expert", *_counts(out / "results" / "expert"), "")] + [
         (label, "zoo" if label.startswith("zoo-") else "trained in this run", ok, n,
          "ok" if fine else "BELOW EXPECTATION") for label, ok, n, _, fine in checks]
+    zoo_dir = out / "results" / f"zoo-{budget.zoo_model}"
+    traffic = _counts(zoo_dir, budget.zoo_traffic_tasks) if budget.zoo_traffic_tasks and zoo_dir.is_dir() else (0, 0)
+    if traffic[1]:
+        summary_rows.append((f"zoo-{budget.zoo_model}, in traffic ({', '.join(budget.zoo_traffic_tasks)})",
+                             "zoo", *traffic, "not guarded"))
     guard_line = "Guard: " + "; ".join(
         f"{label} drove {ok}/{n} " + (f"(expected at least {want}): {'ok' if fine else 'BELOW EXPECTATION'}"
                                       if want is not None else "(its card has no figure for these episodes)")
@@ -346,7 +357,9 @@ def write_demo_report(out: Path, budget: DemoBudget, timings: dict[str, float], 
     intro = ("The whole loop at a small scale on the embedded simulator: expert data in town01 (training weathers, "
              f"the {demo_guidance(card).reference!r} yaw reference of the zoo model's data), "
              f"the small {budget.baseline} baseline trained on it, the expert, that baseline and the zoo's YILRatt "
-             "benchmarked on a subset of routes in both conditions, the zoo YILRatt's attention heat maps. These "
+             "benchmarked on a subset of routes in both conditions (the zoo's YILRatt also in traffic: "
+             f"{', '.join(budget.zoo_traffic_tasks) or 'none'}, routes {budget.zoo_traffic_routes}), the zoo "
+             "YILRatt's attention heat maps. These "
              "are honest small-budget numbers, not the paper's: see the budget below.")
     cap_note = (f"Stopped by the --max-minutes cap: {', '.join(capped)} (its figures depend on the machine's "
                 "speed)." if capped else "")

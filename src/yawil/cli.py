@@ -27,6 +27,7 @@ COMMANDS: dict[str, str] = {
     "select": "yawil.bench.select",
     "trace": "yawil.bench.trace",
     "report": "yawil.bench.report_cli",
+    "results": "yawil.bench.results_cli",
     "experiment": "yawil.bench.experiments_cli",
     "explain": "yawil.explain.cli",
     "demo": "yawil.pipelines.demo",

@@ -242,3 +242,23 @@ def test_wilson_interval_known_values() -> None:
     lo, hi = wilson_interval(17, 50)  # the zoo YILRatt on the dense cell
     assert (round(lo, 1), round(hi, 1)) == (22.4, 47.8)
     assert wilson_interval(0, 10)[0] == 0.0 and wilson_interval(10, 10)[1] == 100.0
+
+
+def test_difference_interval_known_values() -> None:
+    """Newcombe (1998), Statistics in Medicine 17: 873-890, Table II example (a): 56/70 against 48/80, his
+    method 10 gives 0.0524 to 0.3339."""
+    from yawil.bench.metrics import difference_interval
+
+    d, lo, hi = difference_interval((56, 70), (48, 80))
+    assert round(d, 2) == 20.0 and (round(lo, 2), round(hi, 2)) == (5.24, 33.39)
+
+
+@given(st.integers(0, 60), st.integers(1, 60), st.integers(0, 60), st.integers(1, 60))
+def test_difference_interval_holds_the_difference_and_is_antisymmetric(ka: int, na: int, kb: int, nb: int) -> None:
+    from yawil.bench.metrics import difference_interval
+
+    ka, kb = min(ka, na), min(kb, nb)
+    d, lo, hi = difference_interval((ka, na), (kb, nb))
+    assert -100.0 <= lo <= d <= hi <= 100.0
+    d2, lo2, hi2 = difference_interval((kb, nb), (ka, na))
+    assert abs(d + d2) < 1e-9 and abs(lo + hi2) < 1e-9 and abs(hi + lo2) < 1e-9

@@ -303,6 +303,22 @@ def wilson_interval(successes: int, n: int, z: float = 1.959964) -> tuple[float,
     return (min(lo, 100 * p), max(hi, 100 * p))
 
 
+def difference_interval(a: tuple[int, int], b: tuple[int, int], z: float = 1.959964) -> tuple[float, float, float]:
+    """(difference, lo, hi) in percentage points of two success rates, a - b, each given as (successes,
+    episodes): Newcombe's hybrid score interval (his method 10), built from the two Wilson intervals. Why:
+    "A beats B" is a claim about the difference, and two overlapping Wilson intervals do not say it is zero."""
+    (sa, na), (sb, nb) = a, b
+    if na <= 0 or nb <= 0:
+        return (math.nan, math.nan, math.nan)
+    pa, pb = 100.0 * sa / na, 100.0 * sb / nb
+    la, ua = wilson_interval(sa, na, z)
+    lb, ub = wilson_interval(sb, nb, z)
+    d = pa - pb
+    lo = d - math.sqrt((pa - la) ** 2 + (ub - pb) ** 2)
+    hi = d + math.sqrt((ua - pa) ** 2 + (pb - lb) ** 2)
+    return (d, max(-100.0, lo), min(100.0, hi))
+
+
 def mean_std(values: Sequence[float]) -> Stat:
     """Mean and population std over seeds, ignoring undefined (NaN) seeds; NaN if every seed is undefined."""
     vals = tuple(float(v) for v in values)

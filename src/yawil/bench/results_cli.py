@@ -1,0 +1,45 @@
+"""`yawil results MANIFEST --out docs/results.md`: the results page (and README's headline block) from records."""
+
+from __future__ import annotations
+
+import argparse
+
+README_START = "<!-- yawil results: headline (made by `yawil results`; edit records/results.json) -->"
+README_END = "<!-- yawil results: end -->"
+
+
+def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:  # type: ignore[type-arg]
+    p = subparsers.add_parser(
+        "results",
+        help="docs/results.md from the committed records of the headline runs",
+        description="Write Tables III and IV of the runs a manifest lists (records/results.json: each a results "
+        "folder with its model family, training seeds, role and command), the paper's figures beside ours and "
+        "the paper's claims marked by their evidence; with --readme, also the headline block of README.md.",
+    )
+    p.add_argument("manifest", nargs="?", default="records/results.json",
+                   help="the manifest (default records/results.json)")
+    p.add_argument("--out", default="docs/results.md", help="the page to write (default docs/results.md)")
+    p.add_argument("--readme", default=None, metavar="README",
+                   help="also rewrite the block between the yawil results markers of this file")
+    return p
+
+
+def run(args: argparse.Namespace) -> int:
+    from yawil.bench.results_page import headline_block, read_manifest, render
+    from yawil.fileio import write_atomic
+
+    rows, notes = read_manifest(args.manifest)
+    page = write_atomic(args.out, render(rows, notes, str(args.manifest)))
+    print(f"wrote {page} ({len(rows)} rows)")
+    if args.readme:
+        from pathlib import Path
+
+        text = Path(args.readme).read_text(encoding="utf-8")
+        if text.count(README_START) != 1 or text.count(README_END) != 1:
+            raise ValueError(f"{args.readme}: expected one line {README_START!r} and one {README_END!r} around "
+                             "the headline block")
+        head, rest = text.split(README_START)
+        _, tail = rest.split(README_END)
+        write_atomic(args.readme, head + README_START + "\n" + headline_block(rows) + README_END + tail)
+        print(f"wrote the headline block of {args.readme}")
+    return 0

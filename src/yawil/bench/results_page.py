@@ -1,0 +1,233 @@
+"""docs/results.md, made from committed records: `yawil results records/results.json --out docs/results.md`.
+
+The manifest (JSON) lists the headline runs, each a results folder under the manifest's folder with what the
+table needs to say about it: which model family it is (to sit beside the paper's column of that family), how
+many training seeds stand behind it, its role (test: the condition run once per shipped model; selection:
+the training-town set that chose it) and the command that drove it. The page holds Tables III and IV of those
+rows with a 95 % Wilson interval in every cell, the paper's figure beside ours, and the paper's claims, each
+marked by its evidence: a difference counts only when its interval (Newcombe's, from the two Wilson intervals)
+excludes zero. A claim whose rows are absent reads "not tested". Nothing on the page is typed by hand but the
+manifest's notes, so the page and README's headline cell regenerate on any clone.
+"""
+
+from __future__ import annotations
+
+import json
+from collections.abc import Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+from yawil.bench.metrics import difference_interval, wilson_interval
+from yawil.bench.paper import PAPER_MODELS, TABLE_III, paper_cell
+from yawil.bench.suites import CONDITIONS, TABLE_TASKS, TASKS
+
+MODELS = ("expert", "cil", "cilrs", "yaw-guided", "yilratt", "yilratt-pretrained")
+ROLES = ("test", "selection")
+_ROW_FIELDS = {"folder": str, "label": str, "model": str, "training_seeds": int, "role": str, "command": str}
+
+
+@dataclass(frozen=True)
+class Row:
+    """One headline run of the manifest and its records."""
+
+    label: str
+    model: str
+    training_seeds: int
+    role: str
+    command: str
+    folder: Path
+    records: tuple[dict[str, Any], ...]
+    note: str = ""
+
+    def cell(self, task: str, condition: str) -> tuple[int, int]:
+        """(successes, episodes) of one Table III cell, seeds pooled."""
+        recs = [r for r in self.records if r["task"] == task and r["condition"] == condition]
+        return sum(bool(r["success"]) for r in recs), len(recs)
+
+
+@dataclass(frozen=True)
+class Claim:
+    """A claim of the paper, checked on the rows of two model families (or one against a published level)."""
+
+    text: str
+    a: str
+    b: str | None  # None: `a` against the paper's own figure of its cells
+    tasks: tuple[str, ...]
+    condition: str
+
+
+CLAIMS: tuple[Claim, ...] = (
+    Claim("YILRatt beats CILRS in traffic, New Town02 & Weather (paper: +41 points Regular, +42 Dense)",
+          "yilratt", "cilrs", ("regular", "dense"), "new-town-weather"),
+    Claim("YILRatt beats CIL in traffic, New Town02 & Weather (paper: +30 Regular, +51 Dense)",
+          "yilratt", "cil", ("regular", "dense"), "new-town-weather"),
+    Claim("Attention helps generalisation: YILRatt beats the same yaw-guided network without attention, "
+          "New Town02 & Weather", "yilratt", "yaw-guided", TABLE_TASKS, "new-town-weather"),
+    Claim("ImageNet pretraining helps a little (paper: +6 Dense, +11 Regular, New Town02 & Weather)",
+          "yilratt-pretrained", "yilratt", ("regular", "dense"), "new-town-weather"),
+    Claim("YILRatt drives Nav. (Dense) in New Town02 & Weather at the paper's level (76.0 ± 3.27)",
+          "yilratt", None, ("dense",), "new-town-weather"),
+    Claim("YILRatt drives Nav. (Regular) in New Town02 & Weather at the paper's level (76.66 ± 0.94)",
+          "yilratt", None, ("regular",), "new-town-weather"),
+)
+
+
+def _bad(where: str, what: str) -> ValueError:
+    return ValueError(f"{where}: {what}")
+
+
+def read_manifest(path: str | Path) -> tuple[list[Row], str]:
+    """The manifest's rows with their records (checked: every field named, every folder readable) and the text
+    of its `notes_file` (Markdown: rows measured before their records were kept), if it names one."""
+    from yawil.bench.records import iter_results
+
+    path = Path(path)
+    try:
+        doc = json.loads(path.read_text(encoding="utf-8"))
+    except OSError as err:
+        raise _bad(str(path), f"cannot be read ({err.strerror or err})") from None
+    except ValueError as err:
+        raise _bad(str(path), f"not valid JSON ({err})") from None
+    if not isinstance(doc, dict) or not isinstance(doc.get("rows"), list) or not doc["rows"]:
+        raise _bad(str(path), "expected an object with a non-empty list 'rows'")
+    rows = []
+    for i, item in enumerate(doc["rows"]):
+        where = f"{path} rows[{i}]"
+        if not isinstance(item, dict):
+            raise _bad(where, "expected an object")
+        unknown = sorted(set(item) - set(_ROW_FIELDS) - {"note"})
+        if unknown:
+            raise _bad(where, f"unknown field(s) {', '.join(unknown)}; expected {', '.join(_ROW_FIELDS)}, note")
+        for name, kind in _ROW_FIELDS.items():
+            if not isinstance(item.get(name), kind) or isinstance(item.get(name), bool):
+                raise _bad(where, f"field {name!r} must be a {kind.__name__}, got {item.get(name)!r}")
+        if item["model"] not in MODELS:
+            raise _bad(where, f"model {item['model']!r}; expected one of {', '.join(MODELS)}")
+        if item["role"] not in ROLES:
+            raise _bad(where, f"role {item['role']!r}; expected one of {', '.join(ROLES)}")
+        if item["training_seeds"] < 0:
+            raise _bad(where, f"training_seeds must be >= 0 (0: the expert), got {item['training_seeds']}")
+        folder = path.parent / item["folder"]
+        try:
+            records = tuple(iter_results(folder))
+        except ValueError as err:
+            raise _bad(where, str(err)) from None
+        if not records:
+            raise _bad(where, f"{folder} holds no episode records")
+        rows.append(Row(item["label"], item["model"], item["training_seeds"], item["role"], item["command"],
+                        folder, records, str(item.get("note", ""))))
+    labels = [r.label for r in rows]
+    if len(set(labels)) != len(labels):
+        raise _bad(str(path), f"row labels must differ, got {labels}")
+    notes = ""
+    if doc.get("notes_file") is not None:
+        notes_path = path.parent / str(doc["notes_file"])
+        try:
+            notes = notes_path.read_text(encoding="utf-8")
+        except OSError as err:
+            raise _bad(f"{path} notes_file", f"{notes_path} cannot be read ({err.strerror or err})") from None
+    return rows, notes
+
+
+def _pct(ok: int, n: int) -> str:
+    lo, hi = wilson_interval(ok, n)
+    return f"{ok}/{n} = {100 * ok / n:.0f} % [{lo:.0f}-{hi:.0f}]"
+
+
+def beside_paper(rows: Sequence[Row]) -> list[str]:
+    """Our cells (x/n, %, Wilson interval) beside the paper's figure of the same model family."""
+    lines = ["| row | task | condition | ours: successes = % [95 % Wilson] | paper |", "|---|---|---|---|---|"]
+    for row in rows:
+        for cond in ("training", "new-town-weather"):
+            for task in TABLE_TASKS:
+                ok, n = row.cell(task, cond)
+                if n:
+                    paper = paper_cell(task, cond, row.model) if row.model in PAPER_MODELS else "—"
+                    lines.append(f"| {row.label} | {TASKS[task].title} | {CONDITIONS[cond].title} | {_pct(ok, n)} "
+                                 f"| {paper} |")
+    return lines
+
+
+def judge(claim: Claim, rows: Sequence[Row]) -> tuple[str, list[str]]:
+    """(status, evidence lines) of a claim: held / not held / not established / not tested."""
+    a_rows = [r for r in rows if r.model == claim.a]
+    if claim.b is None:
+        evidence, verdicts = [], []
+        for row in a_rows:
+            for task in claim.tasks:
+                ok, n = row.cell(task, claim.condition)
+                if not n:
+                    continue
+                level = TABLE_III[(task, claim.condition, claim.a)][0]
+                lo, hi = wilson_interval(ok, n)
+                verdicts.append("held" if lo >= level or lo <= level <= hi else "not held")
+                evidence.append(f"{row.label}: {_pct(ok, n)} against the paper's {level:g} "
+                                f"({row.training_seeds} training seed{'s' * (row.training_seeds != 1)})")
+        return _status(verdicts), evidence
+    b_rows = [r for r in rows if r.model == claim.b]
+    evidence, verdicts = [], []
+    for ra in a_rows:
+        for rb in b_rows:
+            cells = [t for t in claim.tasks if ra.cell(t, claim.condition)[1] and rb.cell(t, claim.condition)[1]]
+            if not cells:
+                continue
+            a = tuple(map(sum, zip(*(ra.cell(t, claim.condition) for t in cells), strict=True)))
+            b = tuple(map(sum, zip(*(rb.cell(t, claim.condition) for t in cells), strict=True)))
+            d, lo, hi = difference_interval(a, b)  # type: ignore[arg-type]
+            verdicts.append("held" if lo > 0 else "not held" if hi < 0 else "not established")
+            evidence.append(f"{ra.label} {_pct(*a)} vs {rb.label} {_pct(*b)} on "
+                            f"{', '.join(TASKS[t].title for t in cells)}: {d:+.0f} points [{lo:+.0f}, {hi:+.0f}]")
+    return _status(verdicts), evidence
+
+
+def _status(verdicts: Sequence[str]) -> str:
+    if not verdicts:
+        return "not tested"
+    return verdicts[0] if len(set(verdicts)) == 1 else "mixed (" + ", ".join(verdicts) + ")"
+
+
+def headline_block(rows: Sequence[Row], task: str = "dense", condition: str = "new-town-weather") -> str:
+    """README's headline table: the paper's hardest cell, every test row that drove it beside the paper's
+    figure of its model family."""
+    lines = [f"| agent | {TASKS[task].title}, {CONDITIONS[condition].title}: successes [95 % Wilson] | paper, "
+             "same model family | training seeds |", "|---|---|---|---|"]
+    for row in rows:
+        ok, n = row.cell(task, condition)
+        if n and row.role == "test":
+            paper = paper_cell(task, condition, row.model) if row.model in PAPER_MODELS else "—"
+            lines.append(f"| {row.label} | **{_pct(ok, n)}** | {paper} | {row.training_seeds or '—'} |")
+    return "\n".join(lines) + "\n"
+
+
+def render(rows: Sequence[Row], notes: str, manifest: str) -> str:
+    """The whole page as Markdown."""
+    from yawil.bench.report import ResultSet, success_table, violations_table
+
+    sets = [ResultSet(r.label, r.folder, list(r.records)) for r in rows if r.role == "test"]
+    md = ["# Results: what yawil's agents drive", "",
+          f"Made by `yawil results {manifest} --out docs/results.md` from the committed records it lists "
+          "(docs/benchmark.md says how episodes are driven and judged); edit the manifest, not this page. A "
+          "difference between two rows counts only when its 95 % interval excludes zero.", "",
+          "## Rows", "", "| row | model | training seeds | role | episodes | records | command |",
+          "|---|---|---|---|---|---|---|"]
+    for r in rows:
+        md.append(f"| {r.label} | {r.model} | {r.training_seeds or '—'} | {r.role} | {len(r.records)} | "
+                  f"`{r.folder.parent.name}/{r.folder.name}` | `{r.command}` |")
+    md += ["", "Role *test*: a cell run once per shipped model (New Town02 & Weather is the test of the training-"
+           "town models); *selection*: training-town episodes that chose a recipe or checkpoint.", ""]
+    if sets:
+        md += ["## Table III and IV (test rows)", "", success_table(sets).markdown(), violations_table(sets).markdown()]
+    md += ["## Beside the paper", "", *beside_paper(rows), "",
+           "The paper's static tasks are the best of 5 evaluation seeds, its dynamic tasks mean ± std over 3; "
+           "ours pool the cell's episodes.", "", "## The paper's claims", ""]
+    for claim in CLAIMS:
+        status, evidence = judge(claim, rows)
+        md.append(f"- **{status}**: {claim.text}.")
+        missing = "no committed row in these cells" if claim.b is None else "no committed rows of both families in these cells"
+        md += [f"  - {e}" for e in evidence] or [f"  - {missing}"]
+    md += ["", "Claims of Tables I and II (yaw guidance against XY and commands on the square scene) are "
+           "measured by `yawil experiment`, not by these rows (docs/experiments.md)."]
+    if notes.strip():
+        md += ["", "## Measured elsewhere", "", notes.strip()]
+    return "\n".join(md) + "\n"

@@ -5,6 +5,7 @@
 - `figures`: a map upsampled, coloured and blended over the image; one frame's figure, a grid
 - `faithfulness`: whether the outputs depend on what the maps point at: the deletion test, open and closed loop
   (docs/explain.md)
+- `by_class`: each map's mass per semantic class against the class's pixel share, by situation (docs/explain.md)
 - `cli`: `yawil explain`
 
 Nothing is imported here, so that `yawil --help` stays fast; import the submodules.

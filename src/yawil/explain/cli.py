@@ -58,6 +58,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                    help="--episode: the map whose top pixels are masked, mean or N (layer N; default mean)")
     g.add_argument("--horizon", type=int, default=20, help="--episode: steps driven masked per moment (default 20)")
     g.add_argument("--moments", type=int, default=8, help="--episode: braking moments tested at most (default 8)")
+    from yawil.explain.by_class import add_by_class_arguments  # numpy only: no torch or matplotlib
+
+    add_by_class_arguments(p.add_argument_group("attention by class (--by-class; docs/explain.md)"), flag_group=src)
     return p
 
 
@@ -71,6 +74,10 @@ def run(args: argparse.Namespace) -> int:
     check_output_folder(args.out, "--out", "explain", args.force)
     agent = Agent.from_checkpoint(args.checkpoint)
     out = claim_output_folder(args.out, "explain")
+    if args.by_class:
+        from yawil.explain.by_class import run_from_args as by_class
+
+        return by_class(agent, args, out)
     if args.faithfulness:
         from yawil.explain.faithfulness import run_from_args
 

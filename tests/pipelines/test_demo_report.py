@@ -25,20 +25,30 @@ def _results(folder: Path, label: str, oks: int, n: int = 4, task: str = "straig
                             "trajectory": [[0, 0], [10, 0]], "route_xy": [[0, 0], [10, 0]]})
 
 
-def test_the_demo_report_says_what_ran_with_its_provenance(tmp_path: Path) -> None:
+CARD = {"model_name": "yilratt", "steps_total": 1500, "commit": "0123456789abcdef", "eval100": {"successes": 89,
+        "episodes": 100}, "drive": {"speed_control": "stop", "stop_release": 10.0}, "demo": {"successes": 8},
+        "data": {"town": "town01", "weathers": "train", "frames": 20170, "seed": 0},
+        "commands": ["yawil collect --out data/x", "yawil train --out runs/a", "yawil dagger --round0 runs/a/last.pt",
+                     "yawil bench --preset eval100"]}
+
+
+def demo_report(out: Path) -> tuple[DemoBudget, Path]:
+    """A demo report of finished stages (synthetic data and records) in `out`: its budget and report.html."""
     budget = DemoBudget(tasks=("straight",))
-    write_synthetic_dataset(tmp_path / "data" / "town01", episodes=2, frames=4, seed=0)
-    _results(tmp_path / "results" / "expert", "expert", 4)
-    _results(tmp_path / "results" / budget.baseline, budget.baseline, 3)
-    _results(tmp_path / "results" / f"zoo-{budget.zoo_model}", f"zoo-{budget.zoo_model}", 4)
-    _results(tmp_path / "results" / f"zoo-{budget.zoo_model}", f"zoo-{budget.zoo_model}", 1, 2, task="regular")
-    card = {"model_name": "yilratt", "steps_total": 1500, "commit": "0123456789abcdef", "eval100": {"successes": 89,
-            "episodes": 100}, "drive": {"speed_control": "stop", "stop_release": 10.0}, "demo": {"successes": 8},
-            "data": {"town": "town01", "weathers": "train", "frames": 20170, "seed": 0},
-            "commands": ["yawil collect --out data/x", "yawil train --out runs/a", "yawil dagger --round0 runs/a/last.pt",
-                         "yawil bench --preset eval100"]}
-    page = write_demo_report(tmp_path, budget, {"collect": 60.0}, {budget.baseline: {"steps": 600, "epochs": 2,
-                             "stopped_by": "max_steps"}}, card, "episode.gif", 100.0).read_text(encoding="utf-8")
+    write_synthetic_dataset(out / "data" / "town01", episodes=2, frames=4, seed=0)
+    _results(out / "results" / "expert", "expert", 4)
+    _results(out / "results" / budget.baseline, budget.baseline, 3)
+    _results(out / "results" / f"zoo-{budget.zoo_model}", f"zoo-{budget.zoo_model}", 4)
+    _results(out / "results" / f"zoo-{budget.zoo_model}", f"zoo-{budget.zoo_model}", 1, 2, task="regular")
+    report = write_demo_report(out, budget, {"collect": 60.0}, {budget.baseline: {"steps": 600, "epochs": 2,
+                               "stopped_by": "max_steps"}}, CARD, "episode.gif", 100.0)
+    return budget, report
+
+
+def test_the_demo_report_says_what_ran_with_its_provenance(tmp_path: Path) -> None:
+    budget, report = demo_report(tmp_path)
+    card = CARD
+    page = report.read_text(encoding="utf-8")
     text = re.sub(r"data:[^'\"]+", "", page)  # the images' bytes
     first = text.index("<table>")
     assert first < text.index("The whole loop")  # the summary comes first

@@ -59,7 +59,7 @@ def main() -> int:
     configs = [(c.split(":")[0], int(c.split(":")[1])) for c in args.configs.split(",")]
     eps = episodes("nocrash", conditions=["training", "new-town-weather"], tasks=["regular", "dense"],
                    routes=args.routes, seeds=1, weather_rule="cycle")
-    mode, release = drive_options(argparse.Namespace(agent=args.agent, speed_control=False, stop_release=0.0))
+    drive = drive_options(argparse.Namespace(agent=args.agent, speed_control=False, stop_release=0.0))
     load0 = os.getloadavg()
     print(f"{len(eps)} episodes (NoCrash regular + dense, both conditions, routes {args.routes}, seed 0), "
           f"agent {args.agent}, {args.workers} workers, device {args.device}")
@@ -68,7 +68,7 @@ def main() -> int:
     with tempfile.TemporaryDirectory() as scratch:
         tmp = args.keep or scratch
         for engine, k in configs:
-            spec = AgentSpec(args.agent, speed_control=mode, stop_release=release, device=args.device, engine=engine)
+            spec = AgentSpec(args.agent, device=args.device, engine=engine, **drive)
             label = f"{spec.engine_label()} K={k}"
             t0 = time.perf_counter()
             summary = run_benchmark(eps, spec, Path(tmp) / f"{engine}{k}", workers=args.workers, progress=False,

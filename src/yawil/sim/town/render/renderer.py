@@ -150,6 +150,41 @@ def _cull_bins() -> None:
         _STATE["bins"] = True
 
 
+def render_frame() -> None:
+    """One frame of the process's engine (its active buffers), drawn from an empty transform cache.
+
+    Why: Panda3D keeps the TransformStates that culling computes (a camera's inverse composed with each node's
+    net transform) in a process-wide cache, and a newly computed matrix is replaced by a cached state equal to
+    it within a tolerance (~1e-6 per entry). The sky card, a child of the camera, is drawn with such a
+    near-identity matrix every frame; which earlier one it got depended on what the process had rendered
+    before (earlier frames, episodes, renderers), and one sky pixel changed an episode's record (issue 38).
+    Emptying the cache, and freeing the states only it held, before each frame makes an image depend on its
+    own inputs alone; it costs ~0.01 ms.
+    """
+    from panda3d.core import TransformState
+
+    TransformState.clearCache()
+    while TransformState.garbageCollect():  # states the cache alone held (garbage-collect-states is on)
+        pass
+    _engine().renderFrame()
+
+
+def changed_lights(drawn: Mapping[int, str], light_states: Mapping[int, str]) -> list[tuple[int, str]]:
+    """(light id, new state) of the heads whose drawn state (`drawn`) differs from `light_states`; a light not
+    listed is off, one without a post in this geometry is not drawn. Shared by the RGB and semantic passes."""
+    changed = []
+    for lid, st in light_states.items():
+        old = drawn.get(lid)
+        if old is None:
+            continue
+        if st != old:
+            if st not in LIGHT_STATES:
+                raise ValueError(f"render: light {lid} state {st!r}; expected one of {', '.join(LIGHT_STATES)}")
+            changed.append((lid, st))
+    changed += [(lid, "off") for lid, old in drawn.items() if old != "off" and lid not in light_states]
+    return changed
+
+
 # ------------------------------------------------------------------------------------------- renderer
 class CameraRenderer:
     """Forward camera of one town. Same inputs give the same image, bit for bit."""
@@ -324,7 +359,7 @@ class CameraRenderer:
         self._set_actors(actors, cam)
         self._buf.setActive(True)
         try:
-            _engine().renderFrame()
+            render_frame()
         finally:
             self._buf.setActive(False)
         return post_effects(self._grab(), self._haze, self._haze_color, self._rain_layers, int(frame))
@@ -352,19 +387,7 @@ class CameraRenderer:
         return raw.reshape(self.config.height, self.config.width, comps)[::-1, :, 2::-1]  # BGR(A), bottom-up
 
     def _set_lights(self, light_states: Mapping[int, str]) -> None:
-        changed = []
-        for lid, st in light_states.items():
-            old = self._lamp_state.get(lid)
-            if old is None:
-                continue  # a light without a post in this geometry is not drawn
-            if st != old:
-                if st not in LIGHT_STATES:
-                    raise ValueError(f"render: light {lid} state {st!r}; expected one of {', '.join(LIGHT_STATES)}")
-                changed.append((lid, st))
-        for lid, old in self._lamp_state.items():
-            if old != "off" and lid not in light_states:
-                changed.append((lid, "off"))
-        for lid, st in changed:
+        for lid, st in changed_lights(self._lamp_state, light_states):
             tile, row = self._lamp_rows[lid]
             node, gi = self._lamp_geoms[tile]
             vdata = node.modifyGeom(gi).modifyVertexData()

@@ -24,10 +24,17 @@ import numpy as np
 
 from yawil.sim import semantic as sem
 from yawil.sim.town.render.camera import sky_card_extent
-from yawil.sim.town.render.renderer import SEMANTIC_TAG, CameraRenderer, _cull_bins, _engine, _pipe
+from yawil.sim.town.render.renderer import (
+    SEMANTIC_TAG,
+    CameraRenderer,
+    _cull_bins,
+    _engine,
+    _pipe,
+    changed_lights,
+    render_frame,
+)
 from yawil.sim.town.render.scene_mesh import Mesh, Tiles, build_lamps, build_static
 
-LIGHT_STATES: tuple[str, ...] = tuple(sem.LIGHT_CLASS)
 _STEP, _OFFSET = 8, 4  # class k drawn as red = 8 k + 4
 
 
@@ -163,7 +170,7 @@ class SemanticPass:
         self._cam.setPosHpr(cam[0], cam[1], cam[2], math.degrees(cam[3]) - 90.0, 0.0, 0.0)
         self._buf.setActive(True)
         try:
-            _engine().renderFrame()
+            render_frame()
         finally:
             self._buf.setActive(False)
         raw = np.frombuffer(self._tex.getRamImage(), np.uint8)
@@ -172,19 +179,7 @@ class SemanticPass:
 
     def _set_lamps(self, light_states: Mapping[int, str]) -> None:
         """Each head's face in its state's class (a light not listed is off), as the renderer does its lamps."""
-        changed = []
-        for lid, st in light_states.items():
-            old = self._lamp_state.get(lid)
-            if old is None:
-                continue  # a light without a post in this geometry is not drawn
-            if st != old:
-                if st not in LIGHT_STATES:
-                    raise ValueError(f"render: light {lid} state {st!r}; expected one of {', '.join(LIGHT_STATES)}")
-                changed.append((lid, st))
-        for lid, old in self._lamp_state.items():
-            if old != "off" and lid not in light_states:
-                changed.append((lid, "off"))
-        for lid, st in changed:
+        for lid, st in changed_lights(self._lamp_state, light_states):
             tile, row = self._lamp_rows[lid]
             node, gi = self._lamp_geoms[tile]
             vdata = node.modifyGeom(gi).modifyVertexData()

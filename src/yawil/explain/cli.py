@@ -20,7 +20,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
             "driven episode (Figure 9)."
         ),
     )
-    p.add_argument("--checkpoint", required=True, help="a yawil checkpoint (best.pt / last.pt) or zoo:NAME")
+    p.add_argument("--checkpoint", help="a yawil checkpoint (best.pt / last.pt) or zoo:NAME (with --failures: "
+                   "instead of the results folder's own agent)")
     src = p.add_mutually_exclusive_group(required=True)
     src.add_argument("--frames", help="a dataset folder or one episode .h5 file to draw frames from")
     src.add_argument("--episode", action="store_true", help="drive a fresh episode and make a video")
@@ -61,6 +62,9 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     from yawil.explain.by_class import add_by_class_arguments  # numpy only: no torch or matplotlib
 
     add_by_class_arguments(p.add_argument_group("attention by class (--by-class; docs/explain.md)"), flag_group=src)
+    from yawil.explain.failures import add_failures_arguments  # numpy only at import
+
+    add_failures_arguments(p.add_argument_group("failures explained (--failures; docs/explain.md)"), flag_group=src)
     return p
 
 
@@ -72,6 +76,12 @@ def run(args: argparse.Namespace) -> int:
     if args.count < 1 or args.steps < 1 or args.every < 1:
         raise SystemExit("yawil explain: --count, --steps and --every must be >= 1")
     check_output_folder(args.out, "--out", "explain", args.force)
+    if args.failures:  # the agent is the results folder's (or --checkpoint's), built with its drive options
+        from yawil.explain.failures import run_from_args as failures
+
+        return failures(args, args.out)
+    if not args.checkpoint:
+        raise SystemExit("yawil explain: --checkpoint is required (except with --failures)")
     agent = Agent.from_checkpoint(args.checkpoint)
     out = claim_output_folder(args.out, "explain")
     if args.by_class:

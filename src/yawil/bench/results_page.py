@@ -209,11 +209,11 @@ def render(rows: Sequence[Row], notes: str, manifest: str) -> str:
           f"Made by `yawil results {manifest} --out docs/results.md` from the committed records it lists "
           "(docs/benchmark.md says how episodes are driven and judged); edit the manifest, not this page. A "
           "difference between two rows counts only when its 95 % interval excludes zero.", "",
-          "## Rows", "", "| row | model | training seeds | role | episodes | records | command |",
-          "|---|---|---|---|---|---|---|"]
+          "## Rows", "", "| row | model | training seeds | role | episodes | records | command | note |",
+          "|---|---|---|---|---|---|---|---|"]
     for r in rows:
         md.append(f"| {r.label} | {r.model} | {r.training_seeds or '—'} | {r.role} | {len(r.records)} | "
-                  f"`{r.folder.parent.name}/{r.folder.name}` | `{r.command}` |")
+                  f"`{r.folder.parent.name}/{r.folder.name}` | `{r.command}` | {r.note} |")
     md += ["", "Role *test*: a cell run once per shipped model (New Town02 & Weather is the test of the training-"
            "town models); *selection*: training-town episodes that chose a recipe or checkpoint.", ""]
     if sets:

@@ -59,12 +59,12 @@ def test_the_page_and_the_readme_block_come_from_the_records(tmp_path: Path) -> 
 
 
 def test_a_difference_inside_the_uncertainty_is_not_established(tmp_path: Path) -> None:
-    from yawil.bench.results_page import CLAIMS, judge, read_manifest
+    from yawil.bench.results_page import CLAIMS, judge, read_results_manifest
 
     rec = tmp_path / "records"
     _folder(rec / "y", "y", "regular", 12, 25)
     _folder(rec / "c", "c", "regular", 10, 25)
-    rows, _ = read_manifest(_manifest(tmp_path, [_row("Y", "yilratt", "y"), _row("C", "cilrs", "c")]))
+    rows, _, _ = read_results_manifest(_manifest(tmp_path, [_row("Y", "yilratt", "y"), _row("C", "cilrs", "c")]))
     status, evidence = judge(CLAIMS[0], rows)
     assert status == "not established" and "Nav. (Regular)" in evidence[0]
 
@@ -98,3 +98,29 @@ def test_the_committed_page_and_readme_block_are_what_the_records_say(tmp_path: 
         "docs/results.md is stale: run `yawil results --readme README.md`"
     assert (tmp_path / "README.md").read_text() == (root / "README.md").read_text(), \
         "README's headline block is stale: run `yawil results --readme README.md`"
+
+
+def test_the_heat_map_claims_follow_the_rules() -> None:
+    """Held: lift's interval above 1 (and, for following a class, above the layer's prior); synthetic tables."""
+    from yawil.bench.results_page import attention_claims
+
+    def row(layer: str, situation: str, cells: dict[str, tuple[float, float, float, float]]) -> dict[str, object]:
+        return {"layer": layer, "situation": situation, "lift": {c: v[0] for c, v in cells.items()},
+                "lift_ci95": {c: [v[1], v[2]] for c, v in cells.items()}, "prior": {c: v[3] for c, v in cells.items()}}
+
+    layers = ["attention layer 1", "attention layer 2", "attention layer 3"]
+    detail = {c: (1.5, 1.2, 1.8, 1.0) for c in ("vehicle", "pedestrian", "pole", "lights")}
+    doc = {"layers": layers, "rows": [
+        row(layers[0], "all", {"passable": (2.0, 1.5, 2.5, 1.9)}),
+        row(layers[1], "all", {"lane_marking": (0.9, 0.5, 1.3, 1.0)}),
+        row(layers[2], "all", detail),
+        row(layers[1], "brake_vehicle", {"vehicle": (2.0, 1.4, 2.6, 0.5)}),  # follows the obstacle
+        row(layers[0], "brake_pedestrian", {"pedestrian": (3.0, 2.0, 4.0, 3.5)}),  # above 1, not above its prior
+    ]}
+    got = {text.split(" (")[0]: status for status, text, _ in attention_claims(doc)}
+    assert got["Layer 1 attends to the passable area"] == "held"
+    assert got["Layer 2 attends to lane lines"] == "not established"
+    assert got["Layer 3 attends to details"] == "held"
+    assert got["When the car brakes, the maps attend to the obstacle"] == "mixed (held, not held)"
+    doc["rows"][2] = row(layers[2], "all", {**detail, "pole": (1.1, 1.05, 1.2, 1.3)})
+    assert attention_claims(doc)[2][0] == "not held"

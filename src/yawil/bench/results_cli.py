@@ -25,11 +25,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
 
 def run(args: argparse.Namespace) -> int:
-    from yawil.bench.results_page import headline_block, read_manifest, render
+    from yawil.bench.results_page import headline_block, read_results_manifest, render
     from yawil.fileio import write_atomic
 
-    rows, notes = read_manifest(args.manifest)
-    page = write_atomic(args.out, render(rows, notes, str(args.manifest)))
+    rows, notes, attention = read_results_manifest(args.manifest)
+    page = write_atomic(args.out, render(rows, notes, str(args.manifest), attention))
     print(f"wrote {page} ({len(rows)} rows)")
     if args.readme:
         from pathlib import Path

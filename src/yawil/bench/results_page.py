@@ -13,7 +13,7 @@ manifest's notes, so the page and README's headline cell regenerate on any clone
 from __future__ import annotations
 
 import json
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -77,9 +77,26 @@ def _bad(where: str, what: str) -> ValueError:
     return ValueError(f"{where}: {what}")
 
 
-def read_manifest(path: str | Path) -> tuple[list[Row], str]:
-    """The manifest's rows with their records (checked: every field named, every folder readable) and the text
-    of its `notes_file` (Markdown: rows measured before their records were kept), if it names one."""
+def _read_attention(path: Path, item: Any) -> dict[str, Any]:
+    """The manifest's `attention` block: label, command, and the JSON outputs of `yawil explain --by-class`
+    (`by_class`) and `--faithfulness` (`faithfulness`), paths relative to the manifest, read here."""
+    where = f"{path} attention"
+    if not isinstance(item, dict) or not all(isinstance(item.get(k), str) for k in ("label", "by_class", "command")):
+        raise _bad(where, "expected an object with strings 'label', 'command', 'by_class' (and 'faithfulness')")
+    out: dict[str, Any] = {"label": item["label"], "command": item["command"]}
+    for key in ("by_class", "faithfulness"):
+        if key in item:
+            file = path.parent / str(item[key])
+            try:
+                out[key] = json.loads(file.read_text(encoding="utf-8"))
+            except (OSError, ValueError) as err:
+                raise _bad(where, f"{key} {file} cannot be read as JSON ({err})") from None
+    return out
+
+
+def read_results_manifest(path: str | Path) -> tuple[list[Row], str, dict[str, Any] | None]:
+    """The manifest's rows with their records (checked: every field named, every folder readable), the text
+    of its `notes_file` (Markdown: rows measured before their records were kept) and its `attention` block."""
     from yawil.bench.records import iter_results
 
     path = Path(path)
@@ -120,6 +137,9 @@ def read_manifest(path: str | Path) -> tuple[list[Row], str]:
     labels = [r.label for r in rows]
     if len(set(labels)) != len(labels):
         raise _bad(str(path), f"row labels must differ, got {labels}")
+    attention = doc.get("attention")
+    if attention is not None:
+        attention = _read_attention(path, attention)
     notes = ""
     if doc.get("notes_file") is not None:
         notes_path = path.parent / str(doc["notes_file"])
@@ -127,7 +147,7 @@ def read_manifest(path: str | Path) -> tuple[list[Row], str]:
             notes = notes_path.read_text(encoding="utf-8")
         except OSError as err:
             raise _bad(f"{path} notes_file", f"{notes_path} cannot be read ({err.strerror or err})") from None
-    return rows, notes
+    return rows, notes, attention
 
 
 def _pct(ok: int, n: int) -> str:
@@ -200,7 +220,7 @@ def headline_block(rows: Sequence[Row], task: str = "dense", condition: str = "n
     return "\n".join(lines) + "\n"
 
 
-def render(rows: Sequence[Row], notes: str, manifest: str) -> str:
+def render(rows: Sequence[Row], notes: str, manifest: str, attention: Mapping[str, Any] | None = None) -> str:
     """The whole page as Markdown."""
     from yawil.bench.report import ResultSet, success_table, violations_table
 
@@ -226,8 +246,82 @@ def render(rows: Sequence[Row], notes: str, manifest: str) -> str:
         md.append(f"- **{status}**: {claim.text}.")
         missing = "no committed row in these cells" if claim.b is None else "no committed rows of both families in these cells"
         md += [f"  - {e}" for e in evidence] or [f"  - {missing}"]
+    if attention is not None and "by_class" in attention:
+        md += ["", f"## The paper's heat-map claims: {attention['label']}", "",
+               f"From `{attention['command']}` (docs/explain.md says what lift and prior mean; the frames are the "
+               "expert's, the maps the model's on the same observations).", ""]
+        for status, text, evidence in attention_claims(attention["by_class"]):
+            md.append(f"- **{status}**: {text}.")
+            md += [f"  - {e}" for e in evidence]
+        if "faithfulness" in attention:
+            md += ["", "Are the maps faithful (the deletion test, not a claim of the paper; top 5 % of a map's pixels "
+                   "masked against 5 % in random blobs; 95 % bootstrap intervals over frames):", ""]
+            md += [f"- {line}" for line in faithfulness_lines(attention["faithfulness"])]
     md += ["", "Claims of Tables I and II (yaw guidance against XY and commands on the square scene) are "
            "measured by `yawil experiment`, not by these rows (docs/experiments.md)."]
     if notes.strip():
         md += ["", "## Measured elsewhere", "", notes.strip()]
     return "\n".join(md) + "\n"
+
+
+# The paper's attention claims, judged on `yawil explain --by-class` (lift = attention mass / pixel share; prior =
+# the lift of the layer's mean map, where it looks anyway) with 95 % intervals over episodes.
+DETAILS = ("vehicle", "pedestrian", "pole", "lights")
+OBSTACLES = (("brake_vehicle", "vehicle"), ("brake_pedestrian", "pedestrian"), ("brake_light", "light_red"))
+
+
+def _lift(doc: Mapping[str, Any], layer: int, situation: str, cls: str) -> tuple[float, float, float, float] | None:
+    """(lift, lo, hi, prior) of a class for a layer (1-based) and situation, or None where it is absent."""
+    name = doc["layers"][layer - 1]
+    for row in doc["rows"]:
+        if row["layer"] == name and row["situation"] == situation:
+            lift, ci, prior = row["lift"].get(cls), (row.get("lift_ci95") or {}).get(cls), row["prior"].get(cls)
+            if lift is None or ci is None or prior is None or None in ci:
+                return None
+            return float(lift), float(ci[0]), float(ci[1]), float(prior)
+    return None
+
+
+def _fmt(v: tuple[float, float, float, float]) -> str:
+    return f"lift {v[0]:.2f} [{v[1]:.2f}-{v[2]:.2f}], prior {v[3]:.2f} (lift/prior {v[0] / v[3]:.2f})"
+
+
+def attention_claims(doc: Mapping[str, Any]) -> list[tuple[str, str, list[str]]]:
+    """(status, claim, evidence) of the paper's heat-map claims on a by-class table. Rules: a layer attends to a
+    class when the interval of its lift lies above 1; it *follows* the class when the lift also exceeds the
+    layer's prior (else the mass lands there because of where the layer always looks)."""
+    out: list[tuple[str, str, list[str]]] = []
+    for layer, cls, text in ((1, "passable", "Layer 1 attends to the passable area (road, lane markings, crossings)"),
+                             (2, "lane_marking", "Layer 2 attends to lane lines")):
+        v = _lift(doc, layer, "all", cls)
+        status = "not tested" if v is None else "held" if v[1] > 1 else "not held" if v[2] < 1 else "not established"
+        out.append((status, text, [] if v is None else [f"layer {layer}, {cls}, all frames: {_fmt(v)}"]))
+    vs = {c: _lift(doc, 3, "all", c) for c in DETAILS}
+    shown = {c: v for c, v in vs.items() if v is not None}
+    held = bool(shown) and all(v[1] > 1 and v[0] > v[3] for v in shown.values())
+    out.append(("held" if held else "not held" if shown else "not tested",
+                "Layer 3 attends to details (each of vehicles, pedestrians, poles and lights above 1 and above the "
+                "layer's prior)", [f"layer 3, {c}: {_fmt(v)}" for c, v in shown.items()]))
+    evidence, verdicts = [], []
+    for situation, cls in OBSTACLES:
+        per_layer = [(i, _lift(doc, i, situation, cls)) for i in range(1, len(doc["layers"]) + 1)]
+        found = [(i, v) for i, v in per_layer if v is not None]
+        if not found:
+            continue
+        follows = [i for i, v in found if v[1] > 1 and v[0] > v[3]]
+        verdicts.append("held" if follows else "not held")
+        evidence += [f"{situation} ({cls}), layer {i}: {_fmt(v)}" for i, v in found]
+    out.append((_status(verdicts), "When the car brakes, the maps attend to the obstacle (a layer's lift on the "
+                "vehicle, pedestrian or red light above 1 and above its prior)", evidence))
+    return out
+
+
+def faithfulness_lines(doc: Mapping[str, Any], k: float = 5.0,
+                       outputs: Sequence[str] = ("target_speed", "steer")) -> list[str]:
+    """The deletion test's top/random ratios at `k` % (above 1: the output reads what the map points at)."""
+    lines = []
+    for r in doc["results"]:
+        if r["k"] == k and r["output"] in outputs:
+            lines.append(f"{r['map']}, {r['output']}: top/random {r['ratio']:.2f} [{r['ratio_lo']:.2f}-"
+                         f"{r['ratio_hi']:.2f}] ({'faithful' if r['ratio_lo'] > 1 else 'not faithful' if r['ratio_hi'] < 1 else 'not established'})")
+    return lines

@@ -213,3 +213,17 @@ def test_damaged_resume_state_is_named_and_pack_force_replaces_only_a_zoo_model(
             pack(tiny_checkpoint("yaw-guided", guidance_dim=15).path, name, data, {"summary": "x"}, root=tmp_path,
                  count=2, force=True)
     assert (tmp_path / "run" / "best.pt").read_bytes() == b"weights" and (tmp_path / "mine.txt").is_file()
+
+
+def test_a_training_checkpoint_with_resume_state_packs(tmp_path: Path, tiny_checkpoint: Any, tiny_dataset: Any) -> None:
+    """A checkpoint `train` writes carries its optimiser and the digest of it; the pack drops both (it kept the
+    digest, so every training checkpoint was refused as damaged)."""
+    from yawil.policy.checkpoint import load_checkpoint, save_checkpoint
+
+    ckpt = load_checkpoint(tiny_checkpoint("yilratt", aux=True).path)
+    trained = tmp_path / "last.pt"
+    save_checkpoint({**ckpt, "optimizer": {"state": {}, "param_groups": [{"lr": 1e-3}]}}, trained)
+    assert "resume_sha256" in torch.load(trained, weights_only=False)
+    pack(trained, "trained", tiny_dataset(episodes=2, frames=5, k=15), {"summary": "x"}, root=tmp_path / "zoo", count=2)
+    packed = load_checkpoint(tmp_path / "zoo" / "trained" / "model.pt")
+    assert "optimizer" not in packed and "resume_sha256" not in packed

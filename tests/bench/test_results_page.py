@@ -124,3 +124,16 @@ def test_the_heat_map_claims_follow_the_rules() -> None:
     assert got["When the car brakes, the maps attend to the obstacle"] == "mixed (held, not held)"
     doc["rows"][2] = row(layers[2], "all", {**detail, "pole": (1.1, 1.05, 1.2, 1.3)})
     assert attention_claims(doc)[2][0] == "not held"
+
+
+def test_the_page_replaces_only_its_own_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    _folder(tmp_path / "records" / "y", "y", "dense", 1, 2)
+    manifest = _manifest(tmp_path, [_row("Y", "yilratt", "y")])
+    (tmp_path / "notes.md").write_text("a user's notes")
+    assert main(["results", str(manifest), "--out", str(tmp_path / "notes.md")]) == 2
+    assert "--force" in capsys.readouterr().err and (tmp_path / "notes.md").read_text() == "a user's notes"
+    (tmp_path / "records" / "y" / ".yawil.lock").write_text("")  # a results folder as `yawil bench` leaves it
+    (tmp_path / "records" / "y" / "page.md").write_text("x")
+    assert main(["results", str(manifest), "--out", str(tmp_path / "records" / "y" / "page.md"), "--force"]) == 2
+    assert main(["results", str(manifest), "--out", str(tmp_path / "page.md")]) == 0
+    assert main(["results", str(manifest), "--out", str(tmp_path / "page.md")]) == 0  # its own page, regenerated

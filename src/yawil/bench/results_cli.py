@@ -19,21 +19,28 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("manifest", nargs="?", default="records/results.json",
                    help="the manifest (default records/results.json)")
     p.add_argument("--out", default="docs/results.md", help="the page to write (default docs/results.md)")
+    p.add_argument("--force", action="store_true", help="replace an --out file this command did not write")
     p.add_argument("--readme", default=None, metavar="README",
                    help="also rewrite the block between the yawil results markers of this file")
     return p
 
 
 def run(args: argparse.Namespace) -> int:
-    from yawil.bench.results_page import headline_block, read_results_manifest, render
-    from yawil.fileio import write_atomic
+    from pathlib import Path
 
+    from yawil.bench.results_page import TITLE, headline_block, read_results_manifest, render
+    from yawil.fileio import check_output_file, write_atomic
+
+    out = Path(args.out)
+    try:  # a page this command wrote before is regenerated; any other file needs --force
+        ours = out.is_file() and out.read_text(encoding="utf-8").startswith(TITLE)
+    except (OSError, UnicodeDecodeError):
+        ours = False
+    check_output_file(out, "--out", args.force, own=(out.name,) if ours else ())
     rows, notes, attention = read_results_manifest(args.manifest)
     page = write_atomic(args.out, render(rows, notes, str(args.manifest), attention))
     print(f"wrote {page} ({len(rows)} rows)")
     if args.readme:
-        from pathlib import Path
-
         text = Path(args.readme).read_text(encoding="utf-8")
         if text.count(README_START) != 1 or text.count(README_END) != 1:
             raise ValueError(f"{args.readme}: expected one line {README_START!r} and one {README_END!r} around "

@@ -22,6 +22,7 @@ from yawil.bench.metrics import difference_interval, wilson_interval
 from yawil.bench.paper import PAPER_MODELS, TABLE_III, paper_cell
 from yawil.bench.suites import CONDITIONS, TABLE_TASKS, TASKS
 
+TITLE = "# Results: what yawil's agents drive"  # the page's first line: how `yawil results` knows its own page
 MODELS = ("expert", "cil", "cilrs", "yaw-guided", "yilratt", "yilratt-pretrained")
 ROLES = ("test", "selection")
 _ROW_FIELDS = {"folder": str, "label": str, "model": str, "training_seeds": int, "role": str, "command": str}
@@ -225,7 +226,7 @@ def render(rows: Sequence[Row], notes: str, manifest: str, attention: Mapping[st
     from yawil.bench.report import ResultSet, success_table, violations_table
 
     sets = [ResultSet(r.label, r.folder, list(r.records)) for r in rows if r.role == "test"]
-    md = ["# Results: what yawil's agents drive", "",
+    md = [TITLE, "",
           f"Made by `yawil results {manifest} --out docs/results.md` from the committed records it lists "
           "(docs/benchmark.md says how episodes are driven and judged); edit the manifest, not this page. A "
           "difference between two rows counts only when its 95 % interval excludes zero.", "",

@@ -197,7 +197,8 @@ def save_checkpoint(ckpt: dict[str, Any], path: str | os.PathLike[str]) -> Path:
     missing = [k for k in REQUIRED_KEYS if k not in ckpt]
     if missing:
         raise ValueError(f"refusing to save a checkpoint without {missing}")
-    ckpt = {**ckpt, "weights_sha256": weights_digest(ckpt["state_dict"])}
+    ckpt = {k: v for k, v in ckpt.items() if k != "resume_sha256"}  # a copy's stale digest (zoo pack drops the state)
+    ckpt["weights_sha256"] = weights_digest(ckpt["state_dict"])
     if any(k in ckpt for k in ("optimizer", "raw_state_dict", "ema")):
         ckpt["resume_sha256"] = resume_digest(ckpt)
     path = Path(path)

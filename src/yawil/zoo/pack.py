@@ -17,7 +17,7 @@ from yawil.policy.probe import read_probe, sample_probe  # noqa: F401  (re-expor
 from yawil.zoo import CARD, PROBE, WEIGHTS, ZOO_DIR, read_card, zoo_dir
 
 PROBE_TOLERANCE = 1e-3  # max |output - card| on the probe frames (float32 on any CPU agrees far closer)
-DROP_KEYS = (*RESUME_KEYS, "scaler", "runtime", "rng_ranks", "raw_state_dict", "ema")
+DROP_KEYS = (*RESUME_KEYS, "scaler", "runtime", "rng_ranks", "raw_state_dict", "ema", "resume_sha256")
 
 
 def unused_modules(model: torch.nn.Module, inputs: dict[str, torch.Tensor | None]) -> list[str]:

@@ -76,3 +76,21 @@ def test_a_refused_command_leaves_no_folder_behind(tmp_path: Path) -> None:
     with folder_lock(tmp_path / "made", "training run") as folder:
         (folder / "config.json").write_text("{}")
     assert (tmp_path / "made" / "config.json").is_file()
+
+
+@pytest.mark.parametrize("what, sig", [("dataset", "manifest.json"), ("training run", "config.yaml"),
+                                       ("results folder", "run.json"), ("DAgger run", "dagger.json")])
+def test_a_work_folder_is_new_empty_or_of_its_own_kind(tmp_path: Path, what: str, sig: str) -> None:
+    """A user's folder (or another stage's) is refused before anything is written there; its own kind resumes."""
+    mine = tmp_path / "mine"
+    mine.mkdir()
+    (mine / "notes.txt").write_text("a user's file")
+    with pytest.raises(ValueError, match=f"no {sig}, so it is not a yawil {what}"), folder_lock(mine, what):
+        pass
+    assert sorted(p.name for p in mine.iterdir()) == ["notes.txt"]  # no lock file left behind either
+    (mine / sig).write_text("{}")
+    with folder_lock(mine, what):
+        pass
+    (tmp_path / "empty").mkdir()
+    with folder_lock(tmp_path / "empty", what):
+        pass

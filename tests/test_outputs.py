@@ -59,6 +59,8 @@ CASES = [
      "--force"),
     (["select", "{t}/run/best.pt", "--out", "{t}/sel", "--link", "{t}/run/sub/../last.pt", "--force"], "run/last.pt",
      "inside"),
+    (["select", "{t}/run/best.pt", "--out", "{t}/sel", "--link", "{t}/mine.csv/x.pt"], "mine.csv", "is a file"),
+    (["data", "stats", "{t}/data", "--out", "{t}/mine.csv/x.png"], "mine.csv", "is a file"),
 ]
 
 

@@ -141,6 +141,7 @@ def check_output_file(path: str | os.PathLike[str], option: str, force: bool = F
     if path.name in OWNED_MARKERS or path.name.startswith(".yawil"):
         raise ValueError(f"{option} {path}: a yawil bookkeeping file; write elsewhere")
     if not path.exists() and not path.is_symlink():
+        _check_writable_parent(path, option)
         return path
     if path.name in own:
         return path
@@ -214,6 +215,18 @@ def claim_output_folder(path: str | os.PathLike[str], command: str) -> Path:
     path = make_folder(path, f"{command} output")
     write_json_atomic(path / OUTPUT_MARKER, {"command": command})
     return path
+
+
+def _check_writable_parent(path: Path, option: str) -> None:
+    """The nearest existing folder above a new file must be a folder this process can write in (the writers make
+    the missing ones): a file there, or /proc, failed only at the write, after the work."""
+    for p in path.absolute().parents:
+        if p.exists():
+            if not p.is_dir():
+                raise ValueError(f"{option} {path}: its parent {p} is a file; expected a folder")
+            if not os.access(p, os.W_OK | os.X_OK):
+                raise ValueError(f"{option} {path}: cannot write in {p}")
+            return
 
 
 def file_sha256(path: str | os.PathLike[str]) -> str:

@@ -18,6 +18,10 @@ from filelock import FileLock, Timeout
 from yawil.fileio import make_folder
 
 LOCK_FILE = ".yawil.lock"
+# The file each kind of folder writes first: a folder that holds files but not this one is a user's folder or
+# another stage's, and writing there would mix (or replace) its files.
+KIND_FILES: dict[str, str] = {"dataset": "manifest.json", "training run": "config.yaml",
+                              "results folder": "run.json", "DAgger run": "dagger.json"}
 
 
 @contextmanager
@@ -25,7 +29,9 @@ def folder_lock(folder: str | os.PathLike[str], what: str) -> Iterator[Path]:
     """Hold `folder`'s lock for the body (creating the folder); ValueError if another holder has it (another
     process, or a second lock of the same folder in this one)."""
     created = not Path(folder).exists()
+    _check_kind(Path(folder), what)
     folder = make_folder(folder, what)
+    before = {p.name for p in folder.iterdir()}
     path = folder / LOCK_FILE
     lock = FileLock(str(path), timeout=0, mode=0o644)
     try:
@@ -39,16 +45,28 @@ def folder_lock(folder: str | os.PathLike[str], what: str) -> Iterator[Path]:
         yield folder
     finally:
         lock.release()
-        if created:
-            _remove_if_unused(folder, path)
+        _remove_if_unused(folder, path, before, created)
 
 
-def _remove_if_unused(folder: Path, lock_path: Path) -> None:
-    """A folder this lock created and nothing was written into (the command was refused after taking it) goes
-    again: left behind, its lone lock file would mark a user's path as a yawil run."""
+def _check_kind(folder: Path, what: str) -> None:
+    """Refuse an existing folder with files that is not a `what` (its `KIND_FILES` file is missing)."""
+    sig = KIND_FILES.get(what)
+    if sig is None or not folder.is_dir() or (folder / sig).exists():
+        return
+    entries = [p.name for p in folder.iterdir() if p.name != LOCK_FILE]
+    if entries:
+        raise ValueError(f"{folder}: holds {len(entries)} entries but no {sig}, so it is not a yawil {what} (a "
+                         f"user's folder or another stage's); give a new or empty folder")
+
+
+def _remove_if_unused(folder: Path, lock_path: Path, before: set[str], created: bool) -> None:
+    """What a refused command (nothing written) leaves goes again: the lock file it created and, when it made
+    the folder, the folder. Left behind, a lone lock file marks a user's path as a yawil run."""
     try:
-        if [p.name for p in folder.iterdir()] == [LOCK_FILE]:
+        now = {p.name for p in folder.iterdir()}
+        if LOCK_FILE not in before and now == before | {LOCK_FILE}:
             lock_path.unlink()
-            folder.rmdir()
+            if created:
+                folder.rmdir()
     except OSError:
         pass  # another process took the folder meanwhile: it stays

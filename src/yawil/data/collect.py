@@ -225,6 +225,8 @@ def collect(
     executor.check()
     if isinstance(world_factory, (list, tuple)) and len(world_factory) != workers:
         raise ValueError(f"{len(world_factory)} world factories for {workers} workers: give one per worker")
+    if isinstance(seed, bool) or not isinstance(seed, int) or seed < 0:
+        raise ValueError(f"--seed {seed!r}: expected an integer >= 0")
     if world_factory is embedded_world:  # a typo'd town must not leave a dataset behind that blocks the rerun
         from yawil.sim.town.map.layout import resolve_town
 

@@ -73,6 +73,8 @@ class CollectConfig:
             v = getattr(self, name)
             if not isinstance(v, (int, float)) or not math.isfinite(v) or v < 0:
                 raise ValueError(f"CollectConfig.{name} must be a finite number >= 0, got {v!r}")
+        if self.min_route_length >= 1e5:  # the scenario's own bound (validate_scenario), checked before the folder
+            raise ValueError(f"CollectConfig.min_route_length must be below 1e5 m, got {self.min_route_length!r}")
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)

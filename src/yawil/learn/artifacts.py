@@ -18,6 +18,7 @@ def link_or_copy(src: Path, dst: Path) -> None:
     rename leaves `dst` intact), or a copy where links are not supported."""
     import shutil
 
+    dst.parent.mkdir(parents=True, exist_ok=True)  # as every atomic writer does
     tmp = dst.with_name(f".{dst.name}.{os.getpid()}.tmp")
     tmp.unlink(missing_ok=True)
     try:

@@ -127,6 +127,13 @@ class DaggerConfig:
              f"{GuidanceConfig.reference} (the default) with --expert-data (the data's own reference is used)")
         self.expert_config()  # an unknown or invalid expert setting fails here
         self.executor_config()  # and an unknown executor
+        from yawil.data.collect import OnPolicy
+        from yawil.sim.town.map.layout import resolve_town
+
+        resolve_town(self.town)  # before dagger.json is written: a typo'd town blocked the corrected command
+        OnPolicy(round=1, beta=self.beta[0], segment_seconds=self.segment_seconds,  # takeover settings, checked
+                 takeover_lateral=self.takeover_lateral, takeover_decel=self.takeover_decel,  # before round 0
+                 takeover_stall=self.takeover_stall, takeover_seconds=self.takeover_seconds)
         aux = (self.train_args.get("model_args") or {}).get("aux") is True
         need(not self.speed_control or aux or self.round0 is not None, "speed_control",
              "a model with an aux head (--train-arg 'model_args={\"aux\": true}' --train-arg aux_weight=...)")

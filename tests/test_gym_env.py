@@ -43,7 +43,7 @@ def test_registered_and_passes_check_env() -> None:
     env = gymnasium.make("yawil/Square-v0", camera=False, vehicles=3, pedestrians=3, render_mode="rgb_array",
                          expert_action=True)
     check_env(env.unwrapped)  # the render check included: it makes a second env through the spec
-    assert set(env.observation_space.keys()) == {"speed", "command", "pose", "route", "guidance"}  # type: ignore[attr-defined]
+    assert set(env.observation_space.keys()) == {"speed", "command", "pose", "route", "route_ego", "guidance"}  # type: ignore[attr-defined]
     env.close()
 
 
@@ -113,6 +113,13 @@ def test_route_and_guidance_come_from_the_project_guidance() -> None:
     assert np.allclose(obs["guidance"], g.yaw, atol=1e-6)
     assert np.allclose(yaw_guidance(obs["route"].astype(np.float64)), obs["guidance"], atol=1e-4)  # same points
     assert np.allclose(obs["route"][0], raw.route.xy[0], atol=0.5)  # starts at the ego's projection
+    # the same points in the car's frame: the ego's projection near the origin, the route ahead at x > 0 (the
+    # start pose follows its lane), and the map points recovered by the inverse rotation
+    ego = obs["route_ego"].astype(np.float64)
+    assert np.linalg.norm(ego[0]) < 2.0 and ego[-1, 0] > 20.0 and abs(ego[-1, 1]) < ego[-1, 0]
+    c, s_ = np.cos(raw.pose.yaw), np.sin(raw.pose.yaw)
+    back = np.column_stack((c * ego[:, 0] - s_ * ego[:, 1], s_ * ego[:, 0] + c * ego[:, 1])) + [raw.pose.x, raw.pose.y]
+    assert np.allclose(back, obs["route"], atol=1e-3) and env.observation_space.contains(obs)
     obs["guidance"][0] = 9.0  # the arrays are the caller's own
     env.close()
 

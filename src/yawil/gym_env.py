@@ -10,6 +10,8 @@ Observation: Dict(
   image uint8 (88, 200, 3) when the camera is on (the models' main input),
   speed (1,) m/s, command Discrete(4) = branch index of `yawil.sim.types.COMMANDS`, pose (x, y, yaw),
   route (K+1, 2): the route ahead in map metres, one point every `spacing` metres from the ego's projection,
+  route_ego (K+1, 2): the same points in the car's frame (x forward, y left, metres): what a learned policy
+  that should not depend on where in the town it is wants,
   guidance (K,) (or (2K,) for "xy"): the paper's guidance vector, from `yawil.guidance.compute_guidance`,
 )
 with K and spacing from `guidance_config` (default 15 points, 2 m). `guidance=None` drops `route` and
@@ -125,6 +127,7 @@ class YawilDriveEnv(gym.Env[dict[str, Any], np.ndarray]):
         }
         if guidance is not None:
             obs_spaces["route"] = spaces.Box(-COORD_LIMIT, COORD_LIMIT, shape=(k + 1, 2), dtype=np.float32)
+            obs_spaces["route_ego"] = spaces.Box(-COORD_LIMIT, COORD_LIMIT, shape=(k + 1, 2), dtype=np.float32)
             if guidance == "xy":
                 obs_spaces["guidance"] = spaces.Box(-1.0, 1.0, shape=(2 * k,), dtype=np.float32)
             else:
@@ -159,6 +162,10 @@ class YawilDriveEnv(gym.Env[dict[str, Any], np.ndarray]):
             # the K+1 points the yaw guidance is built from: heading differences of `route` give `guidance`
             points = resample_route(route.xy, s, cfg.spacing, cfg.count + 1)
             out["route"] = np.clip(points, -COORD_LIMIT, COORD_LIMIT).astype(np.float32)
+            c, si = np.cos(obs.pose.yaw), np.sin(obs.pose.yaw)
+            d = points - np.array([obs.pose.x, obs.pose.y])
+            ego = np.column_stack((c * d[:, 0] + si * d[:, 1], -si * d[:, 0] + c * d[:, 1]))
+            out["route_ego"] = np.clip(ego, -COORD_LIMIT, COORD_LIMIT).astype(np.float32)
             out["guidance"] = np.array(g.get(self.guidance), dtype=np.float32)  # a writable copy
         if self.scenario.camera:
             out["image"] = obs.image

@@ -13,6 +13,8 @@ import os
 import sys
 from collections.abc import Sequence
 
+from yawil.signals import Terminated
+
 # name -> module that owns it, in the order of the loop.
 COMMANDS: dict[str, str] = {
     "sim": "yawil.sim.cli",
@@ -58,16 +60,6 @@ def _version() -> str:
     from yawil import __version__
 
     return __version__
-
-
-class Terminated(KeyboardInterrupt):
-    """SIGTERM or SIGHUP, raised in the main thread so that it unwinds as Ctrl-C does: worker processes are
-    ended, files are left whole and folder locks are held until the last worker is gone. A batch scheduler
-    stops a job with SIGTERM; without this the main process died at once and its workers ran on."""
-
-    def __init__(self, signum: int) -> None:
-        super().__init__(signum)
-        self.signum = signum
 
 
 def _raise_terminated(signum: int, frame: object) -> None:

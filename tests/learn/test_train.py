@@ -185,7 +185,7 @@ def test_budget_stop_mid_epoch_then_resume(tmp_path: Path) -> None:
         train(small(tmp_path, "b"), splits=splits())
 
 
-@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM])
+@pytest.mark.parametrize("sig", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP])
 def test_a_signal_stops_between_steps_and_resume_is_exact(tmp_path: Path, monkeypatch: pytest.MonkeyPatch,
                                                           sig: int) -> None:
     """Ctrl-C or SIGTERM during a step (here: while its batch is prepared) lets the step finish, saves, and
@@ -204,8 +204,13 @@ def test_a_signal_stops_between_steps_and_resume_is_exact(tmp_path: Path, monkey
 
     monkeypatch.setattr(train_module, "prepare_batch", signal_on_third_batch)
     before = signal.getsignal(signal.SIGINT)  # default_int_handler, or SIG_IGN in a job started in the background
-    with pytest.raises(KeyboardInterrupt):
+    from yawil.signals import Terminated
+
+    with pytest.raises(KeyboardInterrupt) as stop:
         train(small(tmp_path, "i", epochs=1), splits=splits(64))
+    # SIGTERM and SIGHUP end as every command ends on them (exit 143 / 129), Ctrl-C as Ctrl-C (130)
+    assert isinstance(stop.value, Terminated) == (sig != signal.SIGINT)
+    assert sig == signal.SIGINT or stop.value.signum == sig  # type: ignore[attr-defined]
     assert load_checkpoint(tmp_path / "i" / "last.pt")["position"]["step"] == 3  # the step under way finished
     assert signal.getsignal(signal.SIGINT) is before  # handlers are given back
     monkeypatch.setattr(train_module, "prepare_batch", real_step)

@@ -49,7 +49,7 @@ from yawil.learn.sampling import (
 )
 from yawil.learn.setup import build_model, check_resumable, make_loader, open_splits
 from yawil.learn.state import Position, rng_states, seed_globals, set_rng_states
-from yawil.learn.stop import STOP, StopRequested, check_stop, stop_between_steps
+from yawil.learn.stop import STOP, StopRequested, check_stop, stop_between_steps, stopped
 from yawil.learn.validate import VAL_KEYS, validate
 from yawil.policy.checkpoint import Norm, cpu_state_dict, load_checkpoint, make_checkpoint, save_checkpoint
 from yawil.policy.runtime import Runtime, resolve_runtime
@@ -323,9 +323,10 @@ def _train(
             writer.close()
             if main:
                 plot_losses(out, metrics)
-                print(f"interrupted at step {pos.step}; resume with --resume", file=sys.stderr)
+                print(f"interrupted at step {pos.step}; the same command resumes it (yawil train: --resume)",
+                      file=sys.stderr)
             sync()
-            raise KeyboardInterrupt(f"stopped at step {pos.step}") from None
+            raise stopped(f"stopped at step {pos.step}") from None
         except _DataError as err:
             # the weights are those after pos.step whole steps: save them, then name the data problem
             bar.close()
@@ -433,4 +434,8 @@ def _iterate(loader: Any) -> Iterator[Any]:
             return
         except (OSError, ValueError) as err:  # h5py's checksum or decode errors, a file gone
             raise _DataError(str(err).strip().splitlines()[-1]) from err
+        except RuntimeError as err:  # a loader worker killed by the signal that stopped the run (a group SIGTERM)
+            if STOP["requested"]:
+                raise StopRequested from err
+            raise
         yield raw

@@ -25,7 +25,18 @@ def make_loader(dataset: Any, batches: list[list[int]], cfg: TrainConfig, runtim
         pin_memory=runtime.device.type == "cuda",
         generator=torch.Generator().manual_seed(cfg.seed),  # keeps the global RNG untouched
         persistent_workers=False,
+        worker_init_fn=_ignore_stop_signals if cfg.workers else None,
     )
+
+
+def _ignore_stop_signals(worker_id: int) -> None:
+    """A loader worker leaves SIGTERM and SIGHUP to the main process: a scheduler's signal to the whole process
+    group killed the workers mid-step, and torch's handler then raised in the main process before it could save
+    (the main process stops after its step and ends the workers itself). Ctrl-C they already ignore."""
+    import signal
+
+    signal.signal(signal.SIGTERM, signal.SIG_IGN)
+    signal.signal(signal.SIGHUP, signal.SIG_IGN)
 
 
 def open_splits(cfg: TrainConfig) -> tuple[Any, Any, dict[str, Any]]:

@@ -1,5 +1,5 @@
-"""Stopping a run cleanly: Ctrl-C or SIGTERM ends it after the current optimiser step (then the loop saves
-last.pt); a second signal stops at once."""
+"""Stopping a run cleanly: Ctrl-C, SIGTERM or SIGHUP ends it after the current optimiser step (then the loop
+saves last.pt); a second signal stops at once."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ class StopRequested(Exception):
     """Raised between two optimiser steps after a Ctrl-C or SIGTERM."""
 
 
-STOP = {"requested": False}
+STOP: dict[str, Any] = {"requested": False, "signal": None}
 
 
 @contextmanager
@@ -30,12 +30,12 @@ def stop_between_steps(announce: bool = True) -> Iterator[None]:
     def handler(signum: int, frame: Any) -> None:
         if STOP["requested"]:
             raise KeyboardInterrupt(f"signal {signum}")
-        STOP["requested"] = True
+        STOP["requested"], STOP["signal"] = True, signum
         if announce:
             print("stopping after this step (press Ctrl-C again to stop at once, unsaved)", file=sys.stderr, flush=True)
 
-    STOP["requested"] = False
-    previous = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM)}
+    STOP["requested"], STOP["signal"] = False, None
+    previous = {sig: signal.signal(sig, handler) for sig in (signal.SIGINT, signal.SIGTERM, signal.SIGHUP)}
     try:
         yield
     finally:
@@ -47,3 +47,12 @@ def stop_between_steps(announce: bool = True) -> Iterator[None]:
 def check_stop() -> None:
     if STOP["requested"]:
         raise StopRequested
+
+
+def stopped(message: str) -> KeyboardInterrupt:
+    """What a run stopped by a signal raises once its state is saved: `Terminated` for SIGTERM or SIGHUP (exit
+    143 / 129, as every other command), KeyboardInterrupt for Ctrl-C (130)."""
+    from yawil.signals import Terminated
+
+    sig = STOP.get("signal")
+    return Terminated(sig) if sig in (signal.SIGTERM, signal.SIGHUP) else KeyboardInterrupt(message)

@@ -9,7 +9,9 @@ from __future__ import annotations
 
 PAPER_MODELS: tuple[str, ...] = ("cil", "cilrs", "yilratt", "yilratt-pretrained")
 
-_T3 = {  # task: (training: CIL, CILRS, YILRatt, pretrained), (new-town-weather: the same four)
+_Cell = float | tuple[float, float]  # a best-of-5 static figure, or a dynamic (mean, std)
+_T3: dict[str, tuple[tuple[_Cell, ...], tuple[_Cell, ...]]] = {  # task: (training: CIL, CILRS, YILRatt,
+    # pretrained), (new-town-weather: the same four)
     "straight": ((97, 98, 99, 97), (100, 100, 100, 100)),
     "one_turn": ((95, 100, 99, 100), (100, 94, 100, 100)),
     "navigation": ((41, 50, 92, 86), (64, 44, 88, 94)),
@@ -25,7 +27,7 @@ def _cells() -> dict[tuple[str, str, str], tuple[float, float | None]]:
     for task, by_cond in _T3.items():
         for cond, values in zip(("training", "new-town-weather"), by_cond, strict=True):
             for model, v in zip(PAPER_MODELS, values, strict=True):
-                out[(task, cond, model)] = (float(v[0]), float(v[1])) if isinstance(v, tuple) else (float(v), None)
+                out[(task, cond, model)] = (v[0], v[1]) if isinstance(v, tuple) else (float(v), None)
     return out
 
 

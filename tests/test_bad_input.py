@@ -30,6 +30,8 @@ CASES = [
     (["train", "--data", "{t}", "--out", "{t}/r", "--model-arg", "dropout=abc"], "dropout='abc' must be a number", None),
     (["demo", "--routes", "abc", "--out", "{t}/d"], "--routes 'abc'", "{t}/d"),
     (["report", "{t}", "--out", "{t}/rep"], "no episodes.jsonl", None),
+    (["report", "{t}", "{t}/", "--out", "{t}/rep"], "given twice", None),
+    (["export", "{t}/afile", "--onnx", "{t}/m.onnx", "--tolerance", "-1", "--check"], "--tolerance -1.0", "{t}/m.onnx"),
     (["export", "{t}/missing.pt", "--onnx", "{t}/m.onnx"], "missing.pt does not exist", "{t}/m.onnx"),
     (["dagger", "--out", "{t}/dg", "--beta", "x"], "--beta", "{t}/dg"),
     (["explain", "--checkpoint", "{t}/missing.pt", "--frames", "{t}", "--out", "{t}/e"], "does not exist", None),

@@ -451,6 +451,12 @@ def write_report(
 
     `command` is the command line the reports name as their maker (default: this process's).
     """
+    seen: dict[Path, str] = {}
+    for f in folders:  # `R` and `R/` were two identical columns
+        key = Path(f).resolve()
+        if key in seen:
+            raise ValueError(f"results folder {f} is given twice (also as {seen[key]})")
+        seen[key] = str(f)
     sets = [load_results(f) for f in folders]
     if not sets:
         raise ValueError("report needs at least one results folder")

@@ -209,6 +209,11 @@ def run(args: argparse.Namespace) -> int:
     if args.batch < 1:
         print(f"yawil export: --batch {args.batch}: expected a batch size >= 1", file=sys.stderr)
         return 2
+    for name in ("tolerance", "attention_tolerance"):  # checked before the export, not after its comparison
+        v = getattr(args, name)
+        if not math.isfinite(v) or v < 0:
+            print(f"yawil export: --{name.replace('_', '-')} {v}: expected a number >= 0", file=sys.stderr)
+            return 2
     try:
         check_output_file(final, "--onnx", args.force)
     except ValueError as err:

@@ -182,11 +182,7 @@ def check_output_folder(path: str | os.PathLike[str], option: str, command: str,
     if path.exists() and not path.is_dir():
         raise ValueError(f"{option} {path}: is a file; expected a folder to write into")
     if not path.exists():
-        for p in path.parents:
-            if p.exists():
-                if not p.is_dir():
-                    raise ValueError(f"{option} {path}: its parent {p} is a file; expected a folder to write into")
-                break
+        _check_writable_parent(path, option)
         return path
     for marker, beside in OWNED_MARKERS.items():
         if (path / marker).exists() and (beside is None or (path / beside).exists()):

@@ -15,7 +15,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
@@ -29,15 +29,30 @@ if TYPE_CHECKING:
 LAYER_NAMES = ("layer 1", "layer 2", "layer 3")
 
 
+def activation_maps(model: Any, image: Any) -> list[np.ndarray]:
+    """Per-stage maps (h, w) of a network without attention: the channel mean of |activation|, summing to one
+    (`DrivingModel.activation_maps`), for one image (uint8 (H, W, 3) or a float tensor [1, 3, H, W] in [0, 1]).
+    A YILRatt built without `compute_global` never uses its last stage (its forward stops at layer 3, and a zoo
+    model ships without its weights), so that stage is left out."""
+    import torch
+
+    if isinstance(image, np.ndarray):
+        image = torch.from_numpy(np.ascontiguousarray(image)).permute(2, 0, 1)[None].float().div(255.0)
+    param = next(model.parameters(), None)
+    if param is not None:
+        image = image.to(param.device)
+    with torch.inference_mode():
+        maps = model.activation_maps(image)
+    if getattr(model, "compute_global", True) is False:
+        maps = maps[:3]
+    return [m[0].float().cpu().numpy() for m in maps]
+
+
 def _maps_of(agent, image_tensor, attention: list) -> tuple[list[np.ndarray], list[str]]:  # type: ignore[no-untyped-def]
     """Attention maps when the model has them; else the activation maps of its first three stages (CILRS)."""
     if attention:
         return [np.asarray(a, dtype=np.float64) for a in attention], [f"attention {n}" for n in LAYER_NAMES]
-    import torch
-
-    with torch.inference_mode():
-        maps = agent.model.activation_maps(image_tensor)
-    return [m[0].float().cpu().numpy() for m in maps[:3]], [f"activation {n}" for n in LAYER_NAMES]
+    return activation_maps(agent.model, image_tensor)[:3], [f"activation {n}" for n in LAYER_NAMES]
 
 
 def explain_observation(agent, obs, title: str = "") -> Explained:  # type: ignore[no-untyped-def]

@@ -35,7 +35,7 @@ from typing import TYPE_CHECKING, Any
 import numpy as np
 from numpy.typing import ArrayLike
 
-from yawil.explain.figures import normalise_map, upsample
+from yawil.explain.figures import normalise_map, save_figure, upsample
 from yawil.sim.semantic import CLASS_ID, CLASSES
 from yawil.sim.types import RoadOption
 
@@ -440,17 +440,13 @@ class AgentMaps:
         if attention and self.source != "activation":
             self.names = tuple(f"attention layer {i + 1}" for i in range(len(attention)))
             return [np.asarray(a, dtype=np.float32) for a in attention]
-        import torch
+        from yawil.explain.attention import activation_maps
 
-        model: Any = agent.model
         if obs.image is None:
             raise ValueError("AgentMaps needs observations with the camera image")
-        with torch.inference_mode():
-            maps = model.activation_maps(agent.spec.image(obs.image))
-        if getattr(model, "compute_global", True) is False:
-            maps = maps[:3]  # a YILRatt without its global stage never runs (or ships) its last stage
+        maps = activation_maps(agent.model, agent.spec.image(obs.image))
         self.names = tuple(f"activation stage {i + 1}" for i in range(len(maps)))
-        return [m[0].float().cpu().numpy() for m in maps]
+        return maps
 
 
 def gather_frames(
@@ -668,10 +664,7 @@ def by_class_figure(t: ByClass, path: Path | None = None) -> Any:
                          "map)", fontsize=9)
     fig.tight_layout()
     if path is not None:
-        from yawil.fileio import atomic_path
-
-        with atomic_path(path) as tmp:
-            fig.savefig(tmp, dpi=110)
+        save_figure(fig, path)
     return fig
 
 

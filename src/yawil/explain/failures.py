@@ -498,10 +498,9 @@ def strip_figure(f: Failure, count: int = 6, alpha: float = 0.5, path: Path | No
                  fontsize=8)
     fig.tight_layout()
     if path is not None:
-        from yawil.fileio import atomic_path
+        from yawil.explain.figures import save_figure
 
-        with atomic_path(path) as tmp:
-            fig.savefig(tmp, dpi=100)
+        save_figure(fig, path, dpi=100)
     return fig
 
 

@@ -36,7 +36,8 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
-from yawil.explain.figures import normalise_map, upsample
+from yawil.explain.attention import activation_maps
+from yawil.explain.figures import normalise_map, save_figure, upsample
 
 if TYPE_CHECKING:
     import argparse
@@ -105,25 +106,6 @@ def image_maps(maps: Mapping[str, np.ndarray], height: int, width: int) -> dict[
 def map_names(maps: Mapping[str, np.ndarray]) -> list[str]:
     """The names `image_maps` gives: the maps' own, then `MEAN_MAP` with more than one."""
     return list(maps) + ([MEAN_MAP] if len(maps) > 1 else [])
-
-
-def activation_maps(model: Any, image: Any) -> list[np.ndarray]:
-    """Per-stage maps (h, w) of a network without attention: the channel mean of |activation|, summing to one
-    (`DrivingModel.activation_maps`), for one image (uint8 (H, W, 3) or a float tensor [1, 3, H, W] in [0, 1]).
-    A YILRatt built without `compute_global` never uses its last stage (its forward stops at layer 3, and a zoo
-    model ships without its weights), so that stage is left out."""
-    import torch
-
-    if isinstance(image, np.ndarray):
-        image = torch.from_numpy(np.ascontiguousarray(image)).permute(2, 0, 1)[None].float().div(255.0)
-    param = next(model.parameters(), None)
-    if param is not None:
-        image = image.to(param.device)
-    with torch.inference_mode():
-        maps = model.activation_maps(image)
-    if getattr(model, "compute_global", True) is False:
-        maps = maps[:3]
-    return [m[0].float().cpu().numpy() for m in maps]
 
 
 def activation_map(model: Any, image: np.ndarray, stage: int = -1) -> np.ndarray:
@@ -557,10 +539,7 @@ def deletion_figure(result: DeletionResult, path: Path | None = None, outputs: S
                  "(top solid, random dashed, bottom dotted)", fontsize=9)
     fig.tight_layout()
     if path is not None:
-        from yawil.fileio import atomic_path
-
-        with atomic_path(path) as tmp:
-            fig.savefig(tmp, dpi=110)
+        save_figure(fig, path)
     return fig
 
 

@@ -105,7 +105,7 @@ def frame_figure(item: Explained, alpha: float = DEFAULT_ALPHA, path: Path | Non
     )
     fig.tight_layout(rect=(0, 0.08, 1, 1))
     if path is not None:
-        _save(fig, path)
+        save_figure(fig, path)
     return fig
 
 
@@ -138,12 +138,13 @@ def grid_figure(items: Sequence[Explained], alpha: float = DEFAULT_ALPHA, path: 
             ax.set_yticks([])
     fig.tight_layout()
     if path is not None:
-        _save(fig, path)
+        save_figure(fig, path)
     return fig
 
 
-def _save(fig, path: Path) -> None:  # type: ignore[no-untyped-def]
+def save_figure(fig, path: Path, dpi: int = 110) -> None:  # type: ignore[no-untyped-def]
+    """A matplotlib figure written whole (`yawil.fileio.atomic_path`): every explain figure goes through here."""
     from yawil.fileio import atomic_path
 
     with atomic_path(path) as tmp:
-        fig.savefig(tmp, dpi=110)
+        fig.savefig(tmp, dpi=dpi)

@@ -140,6 +140,23 @@ def test_published_suites_have_their_densities_and_conditions() -> None:
     assert all(e.timeout_s == pytest.approx(e.route.length_m / 1000 / 10 * 3600 + 10) for e in dyn)
 
 
+def test_the_selection_set_has_the_test_towns_density_in_the_training_town() -> None:
+    """`selection` drives town01 only, with Nav. (Dense)'s town02 traffic scaled by the towns' lane and walkway
+    lengths: the test cell's density without its town (the figures in the task's comment are these)."""
+    from yawil.sim.town.map.town import get_town
+
+    eps = episodes("selection", routes="0:25", seeds=1, weather_rule="cycle")
+    assert len(eps) == 25 and {(e.town, e.condition) for e in eps} == {("town01", "training")}
+    road = {t: sum(lane.length for lane in get_town(t).lanes.lanes if lane.kind == "road") for t in ("town01", "town02")}
+    walk = {t: sum(w.edge_length(e) for e in range(len(w.edge_list))) for t in ("town01", "town02")
+            for w in [get_town(t).walkways]}
+    dense = get_task("dense")
+    assert {(e.vehicles, e.pedestrians) for e in eps} == {
+        (round(dense.vehicles * road["town01"] / road["town02"]), round(dense.pedestrians * walk["town01"] / walk["town02"]))}
+    with pytest.raises(ValueError, match="condition"):
+        episodes("selection", ["new-town-weather"], routes="0:1", seeds=1)
+
+
 def test_parse_range() -> None:
     assert parse_range("0:5", 25) == [0, 1, 2, 3, 4]
     assert parse_range("3,7", 25) == [3, 7]

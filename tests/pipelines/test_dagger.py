@@ -180,6 +180,32 @@ def test_a_resume_may_change_the_executor_and_nothing_else(tmp_path: Path) -> No
         DaggerConfig(executor="dask")
 
 
+def test_a_finished_run_may_grow_rounds_with_their_own_traffic(tmp_path: Path) -> None:
+    """Per-round settings (beta, traffic; the last repeats): added rounds may differ, the rounds run may not.
+    One pair is written flat, as dagger.json held it before traffic was per round, so older folders resume."""
+    from dataclasses import replace
+
+    from yawil.pipelines.dagger import _traffic
+
+    cfg = DaggerConfig(expert_frames=30, rounds=1, round_vehicles=(50, 60), round_pedestrians=(30, 40))
+    DaggerRun(tmp_path, cfg).check_config()
+    saved = json.loads((tmp_path / "dagger.json").read_text())
+    assert saved["round_vehicles"] == [50, 60] and saved["round_pedestrians"] == [30, 40]
+    grown = replace(cfg, rounds=2, round_vehicles=_traffic("50-60,100-130"), round_pedestrians=((30, 40), (50, 70)),
+                    beta=(0.0, 0.5))
+    assert grown.traffic_of(1) == {"vehicles": (50, 60), "pedestrians": (30, 40)}
+    assert grown.traffic_of(2) == grown.traffic_of(7) == {"vehicles": (100, 130), "pedestrians": (50, 70)}
+    DaggerRun(tmp_path, grown).check_config()
+    assert json.loads((tmp_path / "dagger.json").read_text())["round_vehicles"] == [[50, 60], [100, 130]]
+    with pytest.raises(ValueError, match="round_vehicles"):  # round 1 was driven at 50-60
+        DaggerRun(tmp_path, replace(grown, round_vehicles=((40, 60), (100, 130)))).check_config()
+    with pytest.raises(ValueError, match="beta"):  # and round 2 is now part of the run
+        DaggerRun(tmp_path, replace(grown, rounds=3, beta=(0.0, 0.2, 0.5))).check_config()
+    assert DaggerConfig().traffic_of(1) == {}  # none given: collect's default
+    with pytest.raises(ValueError, match="round_vehicles"):
+        DaggerConfig(round_vehicles=((10, 5),))
+
+
 def test_the_dagger_learner_drives_as_benched(tiny_checkpoint: Any) -> None:
     """With speed_control the learner's throttle and brake come from its aux head's target speed."""
     from yawil.pipelines.dagger import load_learner

@@ -63,7 +63,7 @@ def _add_route_options(p: argparse.ArgumentParser | argparse._ArgumentGroup, act
     p.add_argument("--town", default=None, help=f"{prefix}town01 | town02 | square (default: all three)")
     p.add_argument("--routes-dir", default=None, help=f"{prefix}folder of route files (default: the package's)")
     if action in (None, "routes"):
-        p.add_argument("--seed", type=int, default=0,
+        p.add_argument("--seed", type=int, default=None,  # None: not given (a run refuses it), 0 for routes
                        help=f"{'routes: ' if action is None else ''}seed of the route draw (default 0)")
 
 
@@ -81,7 +81,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("action", nargs="?", default="run", choices=("run", "routes", "validate"),
                    help="run (default): drive the episodes; routes, validate: the route files")
     p.add_argument("--suite", default=None,
-                   help="corl2017 | nocrash | nocrash-original | all | square (default nocrash; docs/benchmark.md)")
+                   help="corl2017 | nocrash | nocrash-original | all | square | selection (default nocrash; docs/benchmark.md)")
     p.add_argument("--preset", choices=sorted(PRESETS), default=None,
                    help="a fixed episode set: eval100 = all five tasks x 10 routes x both conditions, seed 0, each "
                         "route in one weather (100 episodes, for comparing training recipes; docs/training.md)")
@@ -173,8 +173,9 @@ def run(args: argparse.Namespace) -> int:
         if args.action == "routes":
             from yawil.bench.routegen import write_route_file
 
+            seed = 0 if args.seed is None else args.seed
             for town in [args.town] if args.town else ["town01", "town02", "square"]:
-                path = write_route_file(town, seed=args.seed, folder=Path(args.routes_dir) if args.routes_dir else None)
+                path = write_route_file(town, seed=seed, folder=Path(args.routes_dir) if args.routes_dir else None)
                 print(f"wrote {path}")
             return 0
         if args.action == "validate":
@@ -192,6 +193,13 @@ def run(args: argparse.Namespace) -> int:
 def _run_suite(args: argparse.Namespace) -> int:
     from pathlib import Path
 
+    # route-file options that a run would ignore: its towns follow from the conditions, its seeds are --seeds
+    for name, actions, instead in (("town", "routes and validate", "the towns follow from --condition"),
+                                   ("seed", "routes", "the episodes' seeds are --seeds")):
+        if getattr(args, name, None) is not None:
+            raise ValueError(f"--{name} {getattr(args, name)}: applies to bench {actions} only; in a run {instead}")
+    if args.label is not None and not args.label.strip():
+        raise ValueError(f"--label {args.label!r}: expected a column name (leave --label out for the folder's name)")
     apply_preset(args)
     from yawil.bench.runner import AgentSpec, agent_device, drive_options, run_benchmark
     from yawil.bench.suites import episodes

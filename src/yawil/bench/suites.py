@@ -12,6 +12,8 @@ The protocol (docs/benchmark.md; its version is `yawil.bench.records.PROTOCOL`) 
   Every route is driven in every weather of its condition (CoRL2017 and NoCrash do so: 100 episodes per
   task and seed in the training condition, 50 in the new town). The weather episodes of one route and seed
   share their world seed: weather is their only difference.
+- `selection`: Nav. (Dense) in town01 at New Town02's traffic density (per lane- and walkway-metre), the set
+  that chooses checkpoints and recipes for the dense test cell without driving the test town.
 - `square`: the 32 turning tasks of the paper's Table I on the square map, in ClearNoon.
 Route files live in `yawil/bench/routes/<town>.json`, generated once (`yawil bench routes`) and committed.
 """
@@ -94,6 +96,10 @@ TASKS: dict[str, Task] = {
         Task("nocrash_dense", "Dense (NoCrash as published)", "navigation", 100, 250, True, "nocrash",
              (("town01", 100, 250), ("town02", 70, 150))),
         Task("square", "Square turning tasks", "square", 0, 0, False, "nocrash"),
+        # Nav. (Dense) in town01 at New Town02's density: 50 vehicles and 30 pedestrians in town02 are 2.28x
+        # town01's vehicles per lane-metre (1,880 m of road lanes against 4,280) and 2.05x its pedestrians per
+        # walkway-metre (2,425 m against 4,965). The training town's selection set for the dense test cell.
+        Task("dense_matched", "Nav. (Dense) at New Town02's density", "navigation", 114, 61, True, "nocrash"),
     )
 }
 TASK_ALIASES: dict[str, str] = {"nav": "navigation", "one-turn": "one_turn", "nav-dynamic": "nav_dynamic"}
@@ -115,6 +121,7 @@ SUITES: dict[str, tuple[str, ...]] = {
     "nocrash-original": ("empty", "nocrash_regular", "nocrash_dense"),
     "all": ("straight", "one_turn", "navigation", "regular", "dense"),
     "square": ("square",),
+    "selection": ("dense_matched",),  # checkpoint and recipe selection for the dense test cell, town01 only
 }
 SUITE_CONDITIONS: dict[str, tuple[str, ...]] = {
     "corl2017": ("training", "new-town-weather"),
@@ -122,6 +129,7 @@ SUITE_CONDITIONS: dict[str, tuple[str, ...]] = {
     "nocrash-original": ("training", "new-weather", "new-town", "new-town-weather"),
     "all": ("training", "new-town-weather"),
     "square": ("square",),
+    "selection": ("training",),
 }
 TABLE_TASKS: tuple[str, ...] = SUITES["all"]  # rows of Table III, in the paper's order
 assert all(t.timeout in TIMEOUT_RULES for t in TASKS.values())

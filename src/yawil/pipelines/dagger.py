@@ -81,15 +81,19 @@ class DaggerConfig:
     speed_control: bool | str = False
     stop_release: float = 0.0  # s: the learner's "stop" release, as `yawil bench --stop-release`
     stop_creep: float = 0.0  # m: the release's creep length, as `yawil bench --stop-creep`
-    # traffic of the on-policy rounds (LO, HI drawn per episode; None: collect's default). Why: dense-traffic
-    # failures need the learner's own states in queues, which the default 10-30 vehicles rarely make
-    round_vehicles: tuple[int, int] | None = None
-    round_pedestrians: tuple[int, int] | None = None
+    # traffic of the on-policy rounds, per round ((LO, HI) drawn per episode; the last repeats; None: collect's
+    # default; one (LO, HI) pair is every round's). Why: dense-traffic failures need the learner's own states in
+    # queues, which the default 10-30 vehicles rarely make; per round so a finished run can grow a denser round
+    round_vehicles: tuple[tuple[int, int], ...] | None = None
+    round_pedestrians: tuple[tuple[int, int], ...] | None = None
     expert_args: dict[str, float] = field(default_factory=dict)  # ExpertConfig settings of the expert (labels, takeovers)
     # the yaw guidance's reference when round 0's data is collected here; rounds always take the expert data's
     guidance_reference: str = GuidanceConfig.reference
 
     def __post_init__(self) -> None:
+        for name in ("round_vehicles", "round_pedestrians"):  # one (LO, HI) pair: every round's
+            object.__setattr__(self, name, _per_round_traffic(getattr(self, name)))
+
         def need(ok: bool, name: str, want: str) -> None:
             if not ok:
                 raise ValueError(f"dagger: {name}={getattr(self, name)!r}, expected {want}")
@@ -120,8 +124,9 @@ class DaggerConfig:
         need(isinstance(self.expert_args, dict), "expert_args", "a mapping of ExpertConfig settings")
         for name in ("round_vehicles", "round_pedestrians"):
             v = getattr(self, name)
-            need(v is None or (len(v) == 2 and all(_is_int(x) for x in v) and 0 <= v[0] <= v[1]), name,
-                 "None or (LO, HI) integers with 0 <= LO <= HI")
+            need(v is None or (len(v) >= 1 and all(len(p) == 2 and all(_is_int(x) for x in p) and 0 <= p[0] <= p[1]
+                                                   for p in v)), name,
+                 "None or (LO, HI) integers with 0 <= LO <= HI, one pair or one per round")
         need(self.guidance_reference in REFERENCES, "guidance_reference", f"one of {', '.join(REFERENCES)}")
         need(self.expert_data is None or self.guidance_reference == GuidanceConfig.reference, "guidance_reference",
              f"{GuidanceConfig.reference} (the default) with --expert-data (the data's own reference is used)")
@@ -149,18 +154,48 @@ class DaggerConfig:
     def beta_of(self, r: int) -> float:
         return float(self.beta[min(r, len(self.beta)) - 1])
 
+    def traffic_of(self, r: int) -> dict[str, tuple[int, int]]:
+        """Round r's traffic as `collect` takes it (only what is set: the rest is collect's default)."""
+        return {key: v[min(r, len(v)) - 1] for key, v in (("vehicles", self.round_vehicles),
+                                                         ("pedestrians", self.round_pedestrians)) if v is not None}
+
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
         d["beta"] = list(self.beta)
-        for name in ("round_vehicles", "round_pedestrians"):
-            d[name] = None if d[name] is None else list(d[name])
+        for name in ("round_vehicles", "round_pedestrians"):  # one pair is written flat, as before per-round traffic
+            v = getattr(self, name)
+            d[name] = None if v is None else list(v[0]) if len(v) == 1 else [list(p) for p in v]
         return d
 
 
-def _traffic(text: str) -> tuple[int, int]:
+# settings given per round (the last repeats): a finished run may grow rounds whose values differ from here on
+PER_ROUND = ("beta", "round_vehicles", "round_pedestrians")
+
+
+def _per_round_traffic(v: Any) -> Any:
+    """(LO, HI) -> ((LO, HI),); a sequence of pairs -> a tuple of tuples; anything else unchanged (checked later)."""
+    if v is None or not isinstance(v, (list, tuple)) or not v:
+        return v
+    if all(_is_int(x) for x in v):
+        return (tuple(v),)
+    return tuple(tuple(p) if isinstance(p, (list, tuple)) else p for p in v)
+
+
+def _round_value(d: dict[str, Any], name: str, r: int) -> Any:
+    """Round r's value of a per-round setting of a dagger.json mapping."""
+    v = d.get(name)
+    if name != "beta":
+        v = _per_round_traffic(v)
+    if v is None or not isinstance(v, (list, tuple)) or not v:
+        return v
+    item = v[min(r, len(v)) - 1]
+    return tuple(item) if isinstance(item, (list, tuple)) else item
+
+
+def _traffic(text: str) -> tuple[tuple[int, int], ...]:
     from yawil.data.collect_cli import int_range  # parsed as yawil collect --vehicles parses it
 
-    return int_range(text)
+    return tuple(int_range(part.strip()) for part in text.split(","))
 
 
 def _is_int(v: Any) -> bool:
@@ -225,11 +260,15 @@ class DaggerRun:
         mine = self.cfg.to_dict()
         saved = read_marker(path)  # the same JSON-object file as a stage marker
         if saved is not None:
-            # more rounds may be added to a finished run; where the episodes run (the executor) changes no result
-            growable = {"rounds", "executor", "ray_address"}
+            # more rounds may be added to a finished run, with their own per-round values (the rounds it has keep
+            # theirs); where the episodes run (the executor) changes no result
+            growable = {"rounds", "executor", "ray_address", *PER_ROUND}
             defaults = DaggerConfig().to_dict()  # a setting added later reads as its default in older folders
             saved = {**{k: v for k, v in defaults.items() if k not in saved}, **saved}
             diff = sorted(k for k in set(saved) | set(mine) if k not in growable and saved.get(k) != mine.get(k))
+            had = saved.get("rounds") if _is_int(saved.get("rounds")) else 0
+            diff += [k for k in PER_ROUND
+                     if any(_round_value(saved, k, r) != _round_value(mine, k, r) for r in range(1, had + 1))]
             if diff:
                 raise ValueError(
                     f"{path}: this folder holds a DAgger run with other settings ({', '.join(f'{k}: {saved.get(k)!r} -> {mine.get(k)!r}' for k in diff)}); "
@@ -318,8 +357,7 @@ class DaggerRun:
                           identity=str(policy.resolve()), min_world_seed=BENCH_WORLD_SEED_LIMIT,
                           reject_route=BenchmarkRoutes(cfg.town))
         # No steering noise (the learner makes its own mistakes); the second before a collision is not a label.
-        traffic: dict[str, Any] = {k: tuple(v) for k, v in (("vehicles", cfg.round_vehicles), ("pedestrians", cfg.round_pedestrians))
-                   if v is not None}
+        traffic = cfg.traffic_of(r)
         s = collect(self.round_data(r), town=cfg.town, weathers="train", frames=cfg.round_frames, workers=cfg.workers,
                     seed=cfg.seed + ROUND_SEED_STRIDE * r, progress=self.progress, learner=learner, desc=f"round {r}",
                     noise_fraction=0.0, trim_seconds=1.0, max_episode_frames=cfg.episode_frames,
@@ -367,10 +405,12 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--expert-frames", type=int, default=d.expert_frames, help=f"round-0 expert frames (default {d.expert_frames})")
     p.add_argument("--rounds", type=int, default=d.rounds, help=f"on-policy rounds (default {d.rounds})")
     p.add_argument("--round-frames", type=int, default=d.round_frames, help=f"frames per round (default {d.round_frames})")
-    p.add_argument("--round-vehicles", type=_traffic, default=None, metavar="N|LO-HI",
-                   help="vehicles of the on-policy rounds' episodes (default: yawil collect's)")
-    p.add_argument("--round-pedestrians", type=_traffic, default=None, metavar="N|LO-HI",
-                   help="pedestrians of the on-policy rounds' episodes (default: yawil collect's)")
+    p.add_argument("--round-vehicles", type=_traffic, default=None, metavar="N|LO-HI[,...]",
+                   help="vehicles of the on-policy rounds' episodes, per round, comma-separated; the last repeats "
+                        "(default: yawil collect's)")
+    p.add_argument("--round-pedestrians", type=_traffic, default=None, metavar="N|LO-HI[,...]",
+                   help="pedestrians of the on-policy rounds' episodes, per round, as --round-vehicles "
+                        "(default: yawil collect's)")
     p.add_argument("--episode-frames", type=int, default=d.episode_frames,
                    help="end every episode after this many steps (default 0: no limit)")
     p.add_argument("--round0-steps", type=int, default=d.round0_steps, help=f"round-0 training steps (default {d.round0_steps})")

@@ -12,6 +12,8 @@ import pytest
 
 from yawil.cli import main
 
+ONE_EPISODE = ["bench", "--suite", "corl2017", "--tasks", "straight", "--routes", "0:1", "--condition", "training",
+               "--seeds", "1", "--weather-rule", "cycle", "--no-progress"]
 # (argv with {t} for the temporary folder, text the one line must contain, a path that must not exist after)
 CASES = [
     (["sim", "view", "--town", "town02", "--weather", "Rainy", "--out", "{t}/v"], "unknown weather 'Rainy'", "{t}/v"),
@@ -29,7 +31,7 @@ CASES = [
     (["train", "--data", "{t}/none", "--out", "{t}/r"], "does not exist", None),
     (["train", "--data", "{t}", "--out", "{t}/r", "--model-arg", "dropout=abc"], "dropout='abc' must be a number", None),
     (["demo", "--routes", "abc", "--out", "{t}/d"], "--routes 'abc'", "{t}/d"),
-    (["report", "{t}", "--out", "{t}/rep"], "no episodes.jsonl", None),
+    (["report", "{t}", "--out", "{t}/rep"], "no episodes.jsonl", "{t}/rep"),  # refused after the claim: no folder
     (["report", "{t}", "{t}/", "--out", "{t}/rep"], "given twice", None),
     (["export", "{t}/afile", "--onnx", "{t}/m.onnx", "--tolerance", "-1", "--check"], "--tolerance -1.0", "{t}/m.onnx"),
     (["export", "{t}/missing.pt", "--onnx", "{t}/m.onnx"], "missing.pt does not exist", "{t}/m.onnx"),
@@ -40,6 +42,15 @@ CASES = [
      "--port applies to --backend carla", "{t}/b"),
     (["export", "{t}", "--onnx", "{t}/m.onnx"], "is a folder; expected a checkpoint file", "{t}/m.onnx"),
     (["export", "{t}/afile", "--onnx", "{t}/m.onnx", "--batch", "0"], "--batch 0", "{t}/m.onnx"),
+    # options that did nothing where they were given (each case bounded: a regression fails in seconds, not hours)
+    ([*ONE_EPISODE, "--town", "town02", "--out", "{t}/b"], "--town town02: applies to bench routes", "{t}/b"),
+    ([*ONE_EPISODE, "--seed", "3", "--out", "{t}/b"], "--seed 3: applies to bench routes", "{t}/b"),
+    ([*ONE_EPISODE, "--label", " ", "--out", "{t}/b"], "--label ' '", "{t}/b"),
+    (["export", "{t}/afile", "--onnx", "{t}/m.onnx", "--data", "{t}"], "applies to --check", "{t}/m.onnx"),
+    (["trace", "straight/training/ClearNoon/99/0", "--agent", "expert", "--out", "{t}/t.csv", "--tail", "-3"],
+     "--tail -3", "{t}/t.csv"),
+    (["zoo", "check", "nosuchmodel", "--out", "{t}/z"], "--out applies to zoo pack only", "{t}/z"),
+    (["reproduce", "--install", "--dry-run", "--out", "{t}/rp"], "--install applies to --profile zoo", "{t}/rp"),
 ]
 
 
@@ -88,3 +99,94 @@ def test_select_reads_every_candidate_before_driving_any(tmp_path: Path, tiny_ch
                    "--no-progress"])
     assert rc == 2 and "not a readable torch checkpoint" in err.getvalue()
     assert time.perf_counter() - t0 < 20 and not any((tmp_path / "sel").glob("*/episodes.jsonl"))
+
+
+def _one_line(argv: list[str]) -> tuple[int, str]:
+    """`main(argv)`'s exit status and its one line of stderr (a SystemExit's message counted as one)."""
+    err = io.StringIO()
+    with contextlib.redirect_stderr(err), contextlib.redirect_stdout(io.StringIO()):
+        try:
+            rc = main(argv)
+        except SystemExit as exit_:
+            rc = exit_.code if isinstance(exit_.code, int) else 2
+            if not isinstance(exit_.code, int):
+                err.write(str(exit_.code))
+    lines = [line for line in err.getvalue().splitlines() if line.strip()]
+    assert len(lines) == 1 and "Traceback" not in lines[0], lines
+    return rc, lines[0]
+
+
+def test_explain_refused_after_the_claim_leaves_no_folder(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A refusal from the work (here the deletion test's --ks) came after the output folder was claimed: a new
+    folder holding only .yawil-output stayed, and its parents with it."""
+    from yawil.agent import Agent
+
+    monkeypatch.setattr(Agent, "from_checkpoint", classmethod(lambda cls, path, **kw: object()))
+    out = tmp_path / "new" / "e"
+    rc, line = _one_line(["explain", "--checkpoint", "x.pt", "--frames", str(tmp_path), "--faithfulness",
+                          "--ks", "abc", "--out", str(out)])
+    assert rc == 2 and "--ks 'abc'" in line
+    assert not (tmp_path / "new").exists()
+    (tmp_path / "mine").mkdir()  # a user's empty folder stays, without the marker
+    rc, _ = _one_line(["explain", "--checkpoint", "x.pt", "--frames", str(tmp_path), "--faithfulness",
+                       "--ks", "abc", "--out", str(tmp_path / "mine")])
+    assert rc == 2 and list((tmp_path / "mine").iterdir()) == []
+
+
+def _results(folder: Path) -> Path:
+    from yawil.bench.records import PROTOCOL, EpisodeLog, check_run_info
+
+    check_run_info(folder, {"agent": "expert", "agent_options": {}, "label": "expert"})
+    with EpisodeLog(folder) as log:
+        log.append({"protocol": PROTOCOL, "suite": "nocrash", "task": "regular", "condition": "training",
+                    "weather": "ClearNoon", "route_id": 1, "seed": 0, "success": True, "reason": None,
+                    "km_driven": 0.5, "lane_opposite": 0, "lane_offroad": 0, "red_lights": 0, "lights_passed": 1,
+                    "trajectory": [[0, 0], [10, 0]], "route_xy": [[0, 0], [10, 0]]})
+    return folder
+
+
+def test_report_refuses_a_trajectory_episode_the_results_do_not_hold(tmp_path: Path) -> None:
+    """An unknown --trajectory episode was dropped silently (the report had no such figure)."""
+    results = _results(tmp_path / "r")
+    for spec in ("training=regular/7/0", "training=dense/1/0", "training=regular/WetNoon/1/0",
+                 "new-town-weather=regular/1/0"):
+        rc, line = _one_line(["report", str(results), "--out", str(tmp_path / "rep"), "--trajectory", spec])
+        assert rc == 2 and f"--trajectory {spec}: no such episode" in line and "episodes.jsonl" in line, line
+        assert not (tmp_path / "rep").exists()
+    assert "e.g. training=regular/ClearNoon/1/0" in _one_line(
+        ["report", str(results), "--out", str(tmp_path / "rep"), "--trajectory", "training=regular/7/0"])[1]
+
+
+def test_data_stats_writes_no_new_file_into_a_dataset(tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
+    """A new --out inside a dataset (its episodes/ is read by rglob) or a run was allowed; the default
+    DIR/stats.png stays the command's own."""
+    data = tmp_path / "data"
+    (data / "episodes").mkdir(parents=True)
+    (data / "manifest.json").write_text('{"episodes": []}')
+    (tmp_path / "run").mkdir()
+    (tmp_path / "run" / ".yawil.lock").write_text("")
+    for out in (data / "episodes" / "x.h5", data / "plot.png", tmp_path / "run" / "stats.png"):
+        rc, line = _one_line(["data", "stats", str(data), "--out", str(out)])
+        assert rc == 2 and f"--out {out}: inside" in line, line
+        assert not out.exists()
+    monkeypatch.setattr("yawil.data.stats.write_stats", lambda dirs, out: out)  # the figure itself is not the point
+    with contextlib.redirect_stdout(io.StringIO()):
+        assert main(["data", "stats", str(data)]) == 0
+        assert main(["data", "stats", str(data), "--out", str(data / "stats.png")]) == 0
+
+
+def test_data_subset_under_a_file_names_the_users_path(tmp_path: Path, tiny_dataset: Any) -> None:
+    """The error named the temporary folder the subset is built in (afile/.sub.tmp-PID/episodes)."""
+    (tmp_path / "afile").write_text("x")
+    rc, line = _one_line(["data", "subset", str(tiny_dataset()), "--only", "all", "--out", str(tmp_path / "afile" / "sub")])
+    assert rc == 2 and f"--out {tmp_path / 'afile' / 'sub'}: its parent" in line and ".tmp-" not in line, line
+
+
+def test_bench_names_a_run_json_yawil_did_not_write(tmp_path: Path) -> None:
+    """A user's run.json in --out was read as results of benchmark protocol 1."""
+    (tmp_path / "b").mkdir()
+    (tmp_path / "b" / "run.json").write_text('{"name": "my run"}')
+    rc, line = _one_line(["bench", "--suite", "corl2017", "--tasks", "straight", "--routes", "0:1",
+                          "--out", str(tmp_path / "b"), "--no-progress"])
+    assert rc == 2 and "not a yawil results record" in line and "protocol" not in line, line
+    assert sorted(p.name for p in (tmp_path / "b").iterdir()) == ["run.json"]

@@ -27,6 +27,7 @@ def tree(tmp_path: Path) -> Path:
     (tmp_path / "web" / "app.js").write_text("js")
     run = tmp_path / "run"
     (run / "sub").mkdir(parents=True)
+    (run / "sub" / "notes.txt").write_text("a run's notes")
     (run / ".yawil.lock").write_text("")
     for name in ("best.pt", "last.pt"):
         (run / name).write_bytes(b"weights")
@@ -102,6 +103,11 @@ FOLDER_CASES = [
     (["explain", "--checkpoint", "{t}/run/best.pt", "--episode", "--out", "{t}/mine.csv"], "mine.csv", "is a file"),
     (["sim", "view", "--out", "{t}/web"], "web/app.js", "--force"),
     (["sim", "view", "--out", "{t}/data", "--force"], "data/ep_000000.h5", "dataset"),
+    # a subfolder of a yawil output holds that output's files: --force wrote beside them
+    (["sim", "view", "--out", "{t}/run/sub", "--force"], "run/sub/notes.txt", "inside"),
+    (["report", "{t}/run", "--out", "{t}/run/sub", "--force"], "run/sub/notes.txt", "inside"),
+    (["explain", "--checkpoint", "{t}/run/best.pt", "--frames", "{t}/data", "--out", "{t}/run/sub", "--force"],
+     "run/sub/notes.txt", "inside"),
 ]
 
 
@@ -113,6 +119,7 @@ def test_a_folder_option_never_writes_over_a_users_files(tree: Path, argv: list[
     assert rc == 2 and len(lines) == 1 and text in lines[0], lines
     assert (tree / kept).read_bytes() == before
     assert sorted(p.name for p in (tree / "web").iterdir()) == ["app.js", "manifest.json"]
+    assert sorted(p.name for p in (tree / "run" / "sub").iterdir()) == ["notes.txt"]
 
 
 def test_the_folder_rule_itself(tree: Path) -> None:

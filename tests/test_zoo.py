@@ -90,6 +90,35 @@ def test_pack_refuses_bad_input(tmp_path: Path, tiny_checkpoint: Any, capsys: py
     assert main(["zoo", "pack", str(ckpt), "--name", "../x", "--data", str(tmp_path), "--card", str(card)]) == 2
 
 
+def test_pack_refuses_before_the_work_what_it_cannot_pack(tmp_path: Path, tiny_checkpoint: Any, tiny_dataset: Any,
+                                                          capsys: pytest.CaptureFixture[str]) -> None:
+    """More --frames than the dataset has (it sampled on and on), a `stop` drive for a model without the aux head
+    (accepted, then failing wherever it was driven), an --out under a file (the error named pack's temporary
+    folder, after the work), and pack-only options given to `zoo check` (ignored): one line each, nothing made."""
+    from yawil.cli import main
+
+    data = tiny_dataset(episodes=2, frames=5, k=15)
+    card = tmp_path / "card.json"
+    card.write_text(json.dumps({"drive": {"speed_control": "stop"}}))
+    (tmp_path / "afile").write_text("not a checkpoint")  # refused before the checkpoint is read
+
+    def pack_with(ckpt: Path, *extra: str) -> tuple[int, str]:
+        rc = main(["zoo", "pack", str(ckpt), "--name", "m", "--data", str(data), "--card", str(card), *extra])
+        return rc, capsys.readouterr().err
+
+    rc, err = pack_with(tmp_path / "afile", "--frames", "1000", "--out", str(tmp_path / "z"))
+    assert rc == 2 and f"--frames 1000: {data} has " in err and "at most" in err, err
+    for out in (tmp_path / "afile", tmp_path / "afile" / "z"):
+        rc, err = pack_with(tmp_path / "afile", "--out", str(out))
+        assert rc == 2 and f"its parent {tmp_path / 'afile'} is a file" in err and "packing" not in err, err
+    rc, err = pack_with(tiny_checkpoint("yaw-guided", guidance_dim=15).path, "--frames", "2", "--out",
+                        str(tmp_path / "z"))
+    assert rc == 2 and "--card: drive" in err and "needs a model with an aux head" in err, err
+    assert not (tmp_path / "z").exists()
+    assert main(["zoo", "check", "--out", str(tmp_path / "z"), "--force"]) == 2
+    assert "--out, --force apply to zoo pack only" in capsys.readouterr().err
+
+
 def test_pack_checks_everything_first_and_replaces_only_with_force(tmp_path: Path, tiny_checkpoint: Any,
                                                                    tiny_dataset: Any, monkeypatch: pytest.MonkeyPatch,
                                                                    capsys: pytest.CaptureFixture[str]) -> None:

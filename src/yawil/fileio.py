@@ -198,7 +198,13 @@ def check_output_folder(path: str | os.PathLike[str], option: str, command: str,
         made_by = json.loads((path / OUTPUT_MARKER).read_text(encoding="utf-8")).get("command")
     except (OSError, ValueError, AttributeError):
         made_by = None
-    if made_by == command or force:
+    if made_by == command:
+        return path
+    owner = owning_folder(path / OUTPUT_MARKER)  # a subfolder of a dataset, run, results or model folder
+    if owner is not None:
+        raise ValueError(f"{option} {path}: holds files inside {owner}, which a yawil dataset, run, results or model "
+                         "owns; give a new or empty folder (--force does not write there)")
+    if force:
         return path
     what = f"was written by `yawil {made_by}`" if made_by else f"holds {len(entries)} entries yawil {command} did not write"
     raise ValueError(f"{option} {path}: {what}; give a new or empty folder, or --force to write beside them "
@@ -211,6 +217,32 @@ def claim_output_folder(path: str | os.PathLike[str], command: str) -> Path:
     path = make_folder(path, f"{command} output")
     write_json_atomic(path / OUTPUT_MARKER, {"command": command})
     return path
+
+
+@contextlib.contextmanager
+def claimed_output_folder(path: str | os.PathLike[str], command: str) -> Iterator[Path]:
+    """`claim_output_folder` for the block that writes into it. Why: a command refused after the claim (an option
+    its work checks, a frame source that is missing) left a new folder holding only the marker. When the block
+    ends in an error and the folder holds nothing new but the marker, the marker goes again (or the one there
+    before comes back) and so do the folders this call made; a folder the command wrote into stays."""
+    path = Path(path)
+    made = [p for p in (path, *path.parents) if not (p.exists() or p.is_symlink())]  # innermost first
+    marker = path / OUTPUT_MARKER
+    before = set() if made else {e.name for e in path.iterdir()}
+    old = marker.read_bytes() if marker.is_file() else None
+    out = claim_output_folder(path, command)
+    try:
+        yield out
+    except BaseException:
+        with contextlib.suppress(OSError):
+            if {e.name for e in out.iterdir()} == before | {OUTPUT_MARKER}:
+                if old is not None:
+                    write_atomic(marker, old)
+                else:
+                    marker.unlink()
+                    for p in made:
+                        p.rmdir()
+        raise
 
 
 def _check_writable_parent(path: Path, option: str) -> None:

@@ -152,6 +152,9 @@ def check_run_info(folder: str | Path, info: Mapping[str, Any], label_given: boo
             old = json.loads(path.read_text(encoding="utf-8"))
         except ValueError as err:
             raise ValueError(f"{path}: not valid JSON ({err})") from None
+        if not isinstance(old, dict) or not {"agent", "agent_options"} <= set(old):  # every version wrote both
+            raise ValueError(f"{path}: this folder holds a run.json that is not a yawil results record (no agent "
+                             "and agent_options); give a new or empty --out folder")
         if old.get("protocol", 1) != PROTOCOL:
             raise ValueError(f"{path}: results {_other_protocol(old.get('protocol', 1))}")
         keys = ["agent", "agent_options"] + (["label"] if label_given else [])

@@ -315,7 +315,7 @@ def success_plot(sets: Sequence[ResultSet]) -> bytes:
 
 
 # The default episode of the trajectory plot: route 0, seed 0 of the hardest task that was run.
-HARDEST_FIRST: tuple[str, ...] = ("nocrash_dense", "dense", "nocrash_regular", "regular", "nav_dynamic",
+HARDEST_FIRST: tuple[str, ...] = ("nocrash_dense", "dense_matched", "dense", "nocrash_regular", "regular", "nav_dynamic",
                                   "navigation", "empty", "one_turn", "straight", "square")
 
 
@@ -341,15 +341,10 @@ def choose_episodes(sets: Sequence[ResultSet], condition: str,
     return None
 
 
-def trajectory_plot(sets: Sequence[ResultSet], condition: str, spec: str | None = None) -> bytes | None:
-    """The driven paths of every agent on one episode over the bird's-eye map (as the paper's Figure 6)."""
-    import matplotlib
-
-    matplotlib.use("Agg")
-
-    chosen = choose_episodes(sets, condition, spec)
-    if chosen is None:
-        return None
+def episode_records(sets: Sequence[ResultSet], condition: str,
+                    chosen: tuple[str, str | None, int, int]) -> tuple[list[tuple[str, dict[str, Any]]], str | None]:
+    """(column label, record) of every set's records of the `choose_episodes` episode that hold a trajectory, in
+    one weather (the chosen one, else the condition's first that was driven), and that weather."""
     task, weather, rid, seed = chosen
     recs = [
         (rs.label, r)
@@ -360,7 +355,35 @@ def trajectory_plot(sets: Sequence[ResultSet], condition: str, spec: str | None 
     if weather is None and recs:  # one weather: the condition's first that was driven
         order = CONDITIONS[condition].weathers
         weather = min((r["weather"] for _, r in recs), key=lambda w: order.index(w) if w in order else len(order))
-    recs = [(label, r) for label, r in recs if r["weather"] == weather]
+    return [(label, r) for label, r in recs if r["weather"] == weather], weather
+
+
+def check_trajectories(sets: Sequence[ResultSet], trajectories: Mapping[str, str]) -> None:
+    """Refuse, in one line before anything is written, a --trajectory episode the results do not hold (its plot
+    was silently left out of the report)."""
+    for condition, spec in trajectories.items():
+        chosen = choose_episodes(sets, condition, spec)
+        if chosen is not None and episode_records(sets, condition, chosen)[0]:
+            continue
+        have = sorted({f"{r['task']}/{r['weather']}/{r['route_id']}/{r['seed']}" for rs in sets for r in rs.records
+                       if r["condition"] == condition and r.get("trajectory")})
+        some = f"e.g. {condition}={have[0]}" if have else f"none of condition {condition} holds a trajectory"
+        raise ValueError(f"--trajectory {condition}={spec}: no such episode with a trajectory in the results; the "
+                         "keys are TASK/[WEATHER/]ROUTE/SEED of the records in each results folder's episodes.jsonl "
+                         f"({some})")
+
+
+def trajectory_plot(sets: Sequence[ResultSet], condition: str, spec: str | None = None) -> bytes | None:
+    """The driven paths of every agent on one episode over the bird's-eye map (as the paper's Figure 6)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+
+    chosen = choose_episodes(sets, condition, spec)
+    if chosen is None:
+        return None
+    task, _, rid, seed = chosen
+    recs, weather = episode_records(sets, condition, chosen)
     if not recs:
         return None
     town = CONDITIONS[condition].town
@@ -464,6 +487,7 @@ def write_report(
         if not rs.records:
             raise ValueError(f"{rs.folder}: no episode records yet")
     _unique_labels(sets)
+    check_trajectories(sets, trajectories or {})
     prov = provenance(command)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)

@@ -32,7 +32,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 def run(args: argparse.Namespace) -> int:
     from yawil.bench.report import write_report
     from yawil.bench.suites import get_condition
-    from yawil.fileio import check_output_folder, claim_output_folder
+    from yawil.fileio import check_output_folder, claimed_output_folder
 
     chosen: dict[str, str] = {}
     for item in args.trajectory:
@@ -42,9 +42,9 @@ def run(args: argparse.Namespace) -> int:
         get_condition(cond)
         chosen[cond] = spec
     check_output_folder(args.out, "--out", "report", args.force)  # a ValueError: one line, exit 2
-    claim_output_folder(args.out, "report")
     try:
-        paths = write_report(args.results, args.out, chosen)
+        with claimed_output_folder(args.out, "report"):  # a refused report leaves no folder behind
+            paths = write_report(args.results, args.out, chosen)
     except ValueError as err:
         raise SystemExit(f"yawil report: {err}") from None
     print((paths["report.md"]).read_text(encoding="utf-8"))

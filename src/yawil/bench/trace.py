@@ -137,6 +137,8 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
 def run(args: argparse.Namespace) -> int:
     from yawil.fileio import check_output_file
 
+    if args.tail < 0:  # lines[-(-3):] would print all but the first 3 rows
+        raise ValueError(f"--tail {args.tail}: expected a number of rows >= 0")
     check_output_file(args.out, "--out", args.force)  # before the episode is driven
     expert_args = tuple(args.expert_arg)
     spec = AgentSpec(args.agent, **drive_options(args),

@@ -80,9 +80,14 @@ def _stats(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from yawil.data.stats import write_stats
-    from yawil.fileio import check_output_file
+    from yawil.fileio import check_output_file, owning_folder
 
     out = Path(args.out) if args.out else Path(args.dirs[0]) / "stats.png"
     check_output_file(out, "--out", args.force, own=("stats.png",))
+    owner = owning_folder(out)  # a new file there is one more file its readers find (episodes/ is rglob'd)
+    if owner is not None and not (out.name == "stats.png" and out.resolve().parent == owner.resolve()
+                                  and owner.resolve() in {Path(d).resolve() for d in args.dirs}):
+        raise ValueError(f"--out {out}: inside {owner}, which a yawil dataset, run, results or model owns; write "
+                         "the figure elsewhere (without --out it is DIR/stats.png of the first DIR)")
     print(f"wrote {write_stats(args.dirs, out)}")
     return 0

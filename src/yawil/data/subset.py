@@ -30,6 +30,7 @@ from yawil.data.manifest import Manifest, normalise_config, read_manifest
 from yawil.data.reader import open_episode
 from yawil.data.schema import FrameRecord
 from yawil.data.writer import DatasetWriter, _pid_alive
+from yawil.fileio import _check_writable_parent
 from yawil.sim.types import RoadOption
 
 SUBSETS: tuple[str, ...] = ("road-option-turns", "lane-follow-turns", "all")
@@ -85,6 +86,7 @@ def write_subset(src: str | os.PathLike[str], dst: str | os.PathLike[str], only:
         raise ValueError(f"{dst} already exists and is not subset {only!r} of {src}; remove it or choose another --out")
     if dst.resolve().is_relative_to(src.resolve()):
         raise ValueError(f"the subset {dst} must not be inside its source {src}")
+    _check_writable_parent(dst, "--out")  # else the OS error names the temporary folder it is built in
     _remove_stale_tmp(dst)
     tmp = dst.with_name(f".{dst.name}.tmp-{os.getpid()}")
     shutil.rmtree(tmp, ignore_errors=True)

@@ -71,7 +71,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 def run(args: argparse.Namespace) -> int:
     from yawil.agent import Agent
     from yawil.explain.attention import EpisodeVideo, explain_episode, explain_frames
-    from yawil.fileio import check_output_folder, claim_output_folder
+    from yawil.fileio import check_output_folder, claimed_output_folder
 
     if args.count < 1 or args.steps < 1 or args.every < 1:
         raise SystemExit("yawil explain: --count, --steps and --every must be >= 1")
@@ -83,22 +83,22 @@ def run(args: argparse.Namespace) -> int:
     if not args.checkpoint:
         raise SystemExit("yawil explain: --checkpoint is required (except with --failures)")
     agent = Agent.from_checkpoint(args.checkpoint)
-    out = claim_output_folder(args.out, "explain")
-    if args.by_class:
-        from yawil.explain.by_class import run_from_args as by_class
+    with claimed_output_folder(args.out, "explain") as out:  # a refusal from the work below leaves no folder
+        if args.by_class:
+            from yawil.explain.by_class import run_from_args as by_class
 
-        return by_class(agent, args, out)
-    if args.faithfulness:
-        from yawil.explain.faithfulness import run_from_args
+            return by_class(agent, args, out)
+        if args.faithfulness:
+            from yawil.explain.faithfulness import run_from_args
 
-        return run_from_args(agent, args, out)
-    if args.frames:
-        paths = explain_frames(agent, Path(args.frames), out, args.count, args.seed, args.alpha)
-        print(f"wrote {len(paths) - 1} frame figures and {paths[-1]}")
-    else:
-        episode = EpisodeVideo(route=args.route, condition=args.condition, town=args.town, weather=args.weather,
-                               vehicles=args.vehicles, pedestrians=args.pedestrians, seed=args.seed,
-                               steps=args.steps, every=args.every)  # fmt: skip
-        video = explain_episode(agent, out, episode, alpha=args.alpha)
-        print(f"wrote {video}")
+            return run_from_args(agent, args, out)
+        if args.frames:
+            paths = explain_frames(agent, Path(args.frames), out, args.count, args.seed, args.alpha)
+            print(f"wrote {len(paths) - 1} frame figures and {paths[-1]}")
+        else:
+            episode = EpisodeVideo(route=args.route, condition=args.condition, town=args.town, weather=args.weather,
+                                   vehicles=args.vehicles, pedestrians=args.pedestrians, seed=args.seed,
+                                   steps=args.steps, every=args.every)  # fmt: skip
+            video = explain_episode(agent, out, episode, alpha=args.alpha)
+            print(f"wrote {video}")
     return 0

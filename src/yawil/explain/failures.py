@@ -100,7 +100,7 @@ class AgentOf:
 
 def load_agent_of(info: Mapping[str, Any], checkpoint: str | None = None, where: str = "run.json") -> AgentOf:
     """The agent of a run.json (`info`) with its drive options (speed control, stop release and creep, noise) and,
-    where this machine has it, its engine and precision; `checkpoint` replaces the checkpoint (a moved file).
+    where the running machine has it, its engine and precision; `checkpoint` replaces the checkpoint (a moved file).
     ValueError in one line when it cannot be loaded."""
     from yawil.agent import Agent
     from yawil.bench.runner import EXPERT, AgentSpec
@@ -701,7 +701,7 @@ def run_from_args(args: argparse.Namespace, out: str | Path) -> int:
     """`yawil explain --failures`: `explain_failures` with the options of `add_failures_arguments`; prints the
     summary table. `out` is claimed as explain's output folder only once the folder is read and the agent built
     (a refusal leaves nothing behind)."""
-    from yawil.fileio import claim_output_folder
+    from yawil.fileio import claimed_output_folder
 
     results = Path(args.failures)
     reasons = tuple(r.strip() for r in str(args.failure_reasons).split(",") if r.strip())
@@ -709,8 +709,8 @@ def run_from_args(args: argparse.Namespace, out: str | Path) -> int:
                        source=getattr(args, "maps", "auto"), alpha=getattr(args, "alpha", 0.5))
     checkpoint = getattr(args, "checkpoint", None)
     pre = prepare(results, plan, checkpoint)
-    out = claim_output_folder(out, "explain")
-    failures = explain_failures(results, out, plan, checkpoint, verbose=True, prepared=pre)
+    with claimed_output_folder(out, "explain") as out:
+        failures = explain_failures(results, out, plan, checkpoint, verbose=True, prepared=pre)
     if not failures:
         what = f" with reason {', '.join(reasons)}" if reasons else ""
         print(f"{results}: no failed episode{what} to explain; wrote {out / 'failures.md'}")

@@ -209,6 +209,10 @@ def run(args: argparse.Namespace) -> int:
     if args.batch < 1:
         print(f"yawil export: --batch {args.batch}: expected a batch size >= 1", file=sys.stderr)
         return 2
+    if args.data is not None and not args.check:  # only the check reads the frames: it would do nothing
+        print(f"yawil export: --data {args.data}: applies to --check (the real frames it compares on); give "
+              "--check too, or leave --data out", file=sys.stderr)
+        return 2
     for name in ("tolerance", "attention_tolerance"):  # checked before the export, not after its comparison
         v = getattr(args, name)
         if not math.isfinite(v) or v < 0:

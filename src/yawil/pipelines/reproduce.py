@@ -100,6 +100,10 @@ def run(args: argparse.Namespace) -> int:
 
     if args.profile == "zoo":
         return run_zoo(args)
+    for flag, given in (("--install", args.install), ("--zoo-models", args.zoo_models is not None)):
+        if given:  # only the zoo profile packs zoo models: without it the option did nothing
+            raise SystemExit(f"yawil reproduce: {flag} applies to --profile zoo only (the zoo's models); "
+                             f"--profile {args.profile} makes none")
     profile = PROFILES[args.profile]
     if args.pretrained and not Path(args.pretrained).is_file():
         raise SystemExit(f"yawil reproduce: --pretrained {args.pretrained}: no such file")

@@ -80,7 +80,7 @@ def _view(args: argparse.Namespace) -> int:
     matplotlib.use("Agg")
     from PIL import Image
 
-    from yawil.fileio import atomic_path, check_output_folder, claim_output_folder
+    from yawil.fileio import atomic_path, check_output_folder, claimed_output_folder
     from yawil.sim.town.render.birdseye import draw_birdseye
     from yawil.sim.town.world import EmbeddedWorld
     from yawil.sim.types import Scenario
@@ -93,38 +93,38 @@ def _view(args: argparse.Namespace) -> int:
     resolve_town(args.town)  # both named before a folder is made
     get_weather(args.weather)
     check_output_folder(args.out, "--out", "sim view", args.force)
-    out = claim_output_folder(args.out, "sim view")
-    world = EmbeddedWorld(render_backend=args.render_backend)
-    scenario = Scenario(town=args.town, weather=args.weather, vehicles=args.vehicles, pedestrians=args.pedestrians,
-                        camera=True, semantic=bool(getattr(args, "semantic", False)))
-    written = []
-    try:
-        obs = world.reset(scenario, args.seed)
-        shots = {round(k * args.steps / max(args.frames - 1, 1)) for k in range(args.frames)} if args.frames > 1 else {args.steps}
-        for step in range(args.steps + 1):
-            if step in shots and obs.image is not None:
-                path = out / f"camera_{step:04d}.png"
-                with atomic_path(path) as tmp:
-                    Image.fromarray(obs.image).save(tmp)
-                written.append(path)
-            if step in shots and obs.semantic is not None:
-                from yawil.sim.semantic import colorize
+    with claimed_output_folder(args.out, "sim view") as out:  # a refused scenario leaves no folder
+        world = EmbeddedWorld(render_backend=args.render_backend)
+        scenario = Scenario(town=args.town, weather=args.weather, vehicles=args.vehicles, pedestrians=args.pedestrians,
+                            camera=True, semantic=bool(getattr(args, "semantic", False)))
+        written = []
+        try:
+            obs = world.reset(scenario, args.seed)
+            shots = {round(k * args.steps / max(args.frames - 1, 1)) for k in range(args.frames)} if args.frames > 1 else {args.steps}
+            for step in range(args.steps + 1):
+                if step in shots and obs.image is not None:
+                    path = out / f"camera_{step:04d}.png"
+                    with atomic_path(path) as tmp:
+                        Image.fromarray(obs.image).save(tmp)
+                    written.append(path)
+                if step in shots and obs.semantic is not None:
+                    from yawil.sim.semantic import colorize
 
-                path = out / f"semantic_{step:04d}.png"
-                with atomic_path(path) as tmp:
-                    Image.fromarray(colorize(obs.semantic)).save(tmp)
-                written.append(path)
-            if step < args.steps:
-                obs = world.step(follow_route(obs))
-        assert world.town is not None
-        fig = draw_birdseye(world.town.geometry, route_xy=obs.route.xy, actors=world.actor_views(radius=1e9),
-                            ego=world.ego_view(), light_states=world.light_states())
-        path = out / "birdseye.png"
-        with atomic_path(path) as tmp:
-            fig.savefig(tmp, dpi=120)
-        written.append(path)
-    finally:
-        world.close()
+                    path = out / f"semantic_{step:04d}.png"
+                    with atomic_path(path) as tmp:
+                        Image.fromarray(colorize(obs.semantic)).save(tmp)
+                    written.append(path)
+                if step < args.steps:
+                    obs = world.step(follow_route(obs))
+            assert world.town is not None
+            fig = draw_birdseye(world.town.geometry, route_xy=obs.route.xy, actors=world.actor_views(radius=1e9),
+                                ego=world.ego_view(), light_states=world.light_states())
+            path = out / "birdseye.png"
+            with atomic_path(path) as tmp:
+                fig.savefig(tmp, dpi=120)
+            written.append(path)
+        finally:
+            world.close()
     for p in written:
         print(p)
     return 0

@@ -26,8 +26,8 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--name", help="pack: the zoo model's name")
     p.add_argument("--data", help="pack: the dataset the probe frames are drawn from")
     p.add_argument("--card", help="pack: a JSON file of the card's fields")
-    p.add_argument("--frames", type=int, default=8, help="pack: probe frames (default 8)")
-    p.add_argument("--out", default="zoo", help="pack: the zoo folder to write NAME into (default ./zoo; the "
+    p.add_argument("--frames", type=int, default=None, help="pack: probe frames (default 8)")
+    p.add_argument("--out", default=None, help="pack: the zoo folder to write NAME into (default ./zoo; the "
                    "shipped zoo is src/yawil/zoo)")
     p.add_argument("--force", action="store_true", help="pack: replace a model of the same name")
     return p
@@ -40,6 +40,12 @@ def run(args: argparse.Namespace) -> int:
     from yawil import zoo
     from yawil.zoo import pack
 
+    if args.action != "pack":  # check and list read the shipped zoo: a pack option given to them did nothing
+        given = [f"--{k}" for k in ("name", "data", "card", "frames", "out") if getattr(args, k) is not None]
+        given += ["--force"] * args.force
+        if given:
+            raise ValueError(f"zoo {args.action}: {', '.join(given)} {'applies' if len(given) == 1 else 'apply'} to "
+                             f"zoo pack only ({args.action} reads the shipped zoo, {zoo.ZOO_DIR})")
     if args.action == "list":
         print(zoo.table())
         return 0
@@ -53,9 +59,10 @@ def run(args: argparse.Namespace) -> int:
         card = json.loads(Path(args.card).read_text())
     except (OSError, json.JSONDecodeError) as err:
         raise ValueError(f"--card {args.card}: not a readable JSON file ({err})") from None
-    if args.frames < 1:
-        raise ValueError(f"--frames {args.frames}: expected >= 1")
+    frames = 8 if args.frames is None else args.frames
+    if frames < 1:
+        raise ValueError(f"--frames {frames}: expected >= 1")
     folder = pack.pack(args.names[0], args.name, Path(args.data), pack.check_card(card, f"--card {args.card}"),
-                       root=Path(args.out), count=args.frames, force=args.force)
+                       root=Path(args.out or "zoo"), count=frames, force=args.force)
     print(f"zoo:{args.name} -> {folder} ({sum(f.stat().st_size for f in folder.iterdir()) / 2**20:.1f} MiB)")
     return 0

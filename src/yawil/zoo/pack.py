@@ -117,12 +117,15 @@ def pack(checkpoint: str | Path, name: str, data: Path, card: dict[str, Any], ro
     import shutil
 
     from yawil.data.check import check_dataset
+    from yawil.fileio import _check_writable_parent
+    from yawil.policy.drive import DriveSettings
 
     if not name or "/" in name or name.startswith("."):
         raise ValueError(f"--name {name!r}: expected a plain folder name")
     check_card(card, "--card")
     root = root or ZOO_DIR
     final = root / name
+    _check_writable_parent(final, "--out")  # else the OS names the temporary folder, after the work
     if final.exists() or final.is_symlink():
         if not (final.is_dir() and (final / WEIGHTS).is_file() and (final / CARD).is_file()):
             raise ValueError(f"{final}: exists and is not a zoo model (no {WEIGHTS} and {CARD}); choose another "
@@ -132,8 +135,14 @@ def pack(checkpoint: str | Path, name: str, data: Path, card: dict[str, Any], ro
     report = check_dataset(data, images=False)
     if not report.ok:
         raise ValueError(f"--data {data}: fails yawil data check: " + "; ".join(report.lines()[-3:]))
+    if count > report.frames:  # more could only repeat frames, and a mistyped large count ran on for long
+        raise ValueError(f"--frames {count}: {data} has {report.frames} frames; give at most that many probe frames")
     ckpt = load_checkpoint(checkpoint)
     full_agent = probe_agent(checkpoint)
+    try:  # the card's drive must suit this model (a "stop" drive reads the aux head's lead-stop output)
+        DriveSettings.from_options(card.get("drive") or {}).check(full_agent.model)
+    except ValueError as err:
+        raise ValueError(f"--card: drive {card.get('drive')}: {err}") from None
     probe = sample_probe(Path(data), full_agent.kind, count)
     omitted = unused_modules(full_agent.model, probe_inputs(full_agent, probe, 0).as_dict())
     folder = root / f".{name}.packing-{os.getpid()}"

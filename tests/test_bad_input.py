@@ -42,6 +42,9 @@ CASES = [
      "--port applies to --backend carla", "{t}/b"),
     (["export", "{t}", "--onnx", "{t}/m.onnx"], "is a folder; expected a checkpoint file", "{t}/m.onnx"),
     (["export", "{t}/afile", "--onnx", "{t}/m.onnx", "--batch", "0"], "--batch 0", "{t}/m.onnx"),
+    (["export", "{t}/afile", "--onnx", "{t}/m.onnx", "--check", "--batch", "100000"], "--batch 100000", "{t}/m.onnx"),
+    # a user's file where a route file would go is never replaced (nor is a file taken for the folder)
+    (["bench", "routes", "--town", "town01", "--routes-dir", "{t}/afile"], "is a file; expected a folder", None),
     # options that did nothing where they were given (each case bounded: a regression fails in seconds, not hours)
     ([*ONE_EPISODE, "--town", "town02", "--out", "{t}/b"], "--town town02: applies to bench routes", "{t}/b"),
     ([*ONE_EPISODE, "--seed", "3", "--out", "{t}/b"], "--seed 3: applies to bench routes", "{t}/b"),
@@ -190,3 +193,12 @@ def test_bench_names_a_run_json_yawil_did_not_write(tmp_path: Path) -> None:
                           "--out", str(tmp_path / "b"), "--no-progress"])
     assert rc == 2 and "not a yawil results record" in line and "protocol" not in line, line
     assert sorted(p.name for p in (tmp_path / "b").iterdir()) == ["run.json"]
+
+
+def test_bench_routes_never_replaces_a_users_file(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """`bench routes --routes-dir` over a folder holding a user's town01.json refused it only after replacing it."""
+    mine = tmp_path / "town01.json"
+    mine.write_text('{"mine": 1}')
+    with pytest.raises(SystemExit) as exit_:
+        main(["bench", "routes", "--town", "town01", "--routes-dir", str(tmp_path)])
+    assert "is not a yawil route file" in str(exit_.value.code) and mine.read_text() == '{"mine": 1}'

@@ -171,10 +171,13 @@ def run(args: argparse.Namespace) -> int:
 
     try:
         if args.action == "routes":
-            from yawil.bench.routegen import write_route_file
+            from yawil.bench.routegen import check_route_target, write_route_file
 
             seed = 0 if args.seed is None else args.seed
-            for town in [args.town] if args.town else ["town01", "town02", "square"]:
+            towns = [args.town] if args.town else ["town01", "town02", "square"]
+            for town in towns:  # every target before any file is written
+                check_route_target(town, Path(args.routes_dir) if args.routes_dir else None)
+            for town in towns:
                 path = write_route_file(town, seed=seed, folder=Path(args.routes_dir) if args.routes_dir else None)
                 print(f"wrote {path}")
             return 0

@@ -13,6 +13,7 @@ end points has the task's structure. Rules (docs/benchmark.md):
 
 from __future__ import annotations
 
+import json
 import math
 from collections.abc import Callable
 from pathlib import Path
@@ -197,8 +198,32 @@ def generate_routes(town: str, seed: int = 0) -> dict[str, list[RouteSpec]]:
     }
 
 
+def check_route_target(town: str, folder: Path | None = None) -> Path:
+    """Where `write_route_file` would write, refused in one line when that would replace a file that is not a yawil
+    route file or write inside a dataset, run or results folder (`bench routes --routes-dir` over a user's file)."""
+    from yawil.fileio import owning_folder
+
+    if folder is not None and folder.exists() and not folder.is_dir():
+        raise ValueError(f"--routes-dir {folder}: is a file; expected a folder for the route files")
+    path = route_file(town, folder)
+    owner = owning_folder(path)
+    if owner is not None:
+        raise ValueError(f"--routes-dir {path.parent}: inside {owner}, which a yawil dataset, run or results owns; "
+                         "give a folder of route files")
+    if path.exists() or path.is_symlink():
+        try:
+            ours = json.loads(path.read_text(encoding="utf-8")).get("format") == ROUTE_FORMAT
+        except (OSError, ValueError, AttributeError):
+            ours = False
+        if not ours:
+            raise ValueError(f"--routes-dir: {path} exists and is not a yawil route file ({ROUTE_FORMAT}); "
+                             "move it or give another folder")
+    return path
+
+
 def write_route_file(town: str, seed: int = 0, folder: Path | None = None) -> Path:
     """Generate and atomically write `<folder>/<town>.json` (default: the package's routes folder)."""
+    check_route_target(town, folder)
     lists = generate_routes(town, seed)
     for name, specs in lists.items():
         check_task_routes(town, name, specs, f"generated {town}.{name}")

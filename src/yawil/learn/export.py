@@ -202,12 +202,15 @@ def check_onnx(checkpoint: str | Path, onnx_path: str | Path, batch: int = 4, se
     return rows
 
 
+MAX_CHECK_BATCH = 256  # the --check comparison's frames: enough for any batch-dependence, small in memory
+
+
 def run(args: argparse.Namespace) -> int:
     from yawil.fileio import check_output_file
 
     final = Path(args.onnx)
-    if args.batch < 1:
-        print(f"yawil export: --batch {args.batch}: expected a batch size >= 1", file=sys.stderr)
+    if not 1 <= args.batch <= MAX_CHECK_BATCH:  # a batch of 100,000 frames took 21 GB and the OOM killer
+        print(f"yawil export: --batch {args.batch}: expected a batch size from 1 to {MAX_CHECK_BATCH}", file=sys.stderr)
         return 2
     if args.data is not None and not args.check:  # only the check reads the frames: it would do nothing
         print(f"yawil export: --data {args.data}: applies to --check (the real frames it compares on); give "

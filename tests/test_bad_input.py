@@ -43,6 +43,7 @@ CASES = [
     (["export", "{t}", "--onnx", "{t}/m.onnx"], "is a folder; expected a checkpoint file", "{t}/m.onnx"),
     (["export", "{t}/afile", "--onnx", "{t}/m.onnx", "--batch", "0"], "--batch 0", "{t}/m.onnx"),
     (["export", "{t}/afile", "--onnx", "{t}/m.onnx", "--check", "--batch", "100000"], "--batch 100000", "{t}/m.onnx"),
+    (["export", "{t}/afile", "--onnx", "{t}/m.onnx", "--opset", "999"], "--opset 999: expected 17 to", "{t}/m.onnx"),
     # a user's file where a route file would go is never replaced (nor is a file taken for the folder)
     (["bench", "routes", "--town", "town01", "--routes-dir", "{t}/afile"], "is a file; expected a folder", None),
     # options that did nothing where they were given (each case bounded: a regression fails in seconds, not hours)

@@ -35,7 +35,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("checkpoint", help="a yawil checkpoint (best.pt / last.pt) or zoo:NAME")
     p.add_argument("--onnx", required=True, metavar="OUT", help="ONNX file to write")
     p.add_argument("--force", action="store_true", help="replace an existing output file (never one inside a dataset, run, results or zoo folder)")
-    p.add_argument("--opset", type=int, default=OPSET, help=f"ONNX opset (>= 17, default {OPSET})")
+    p.add_argument("--opset", type=int, default=OPSET, help=f"ONNX opset (17 to the exporter's newest, 20 with today's torch; default {OPSET})")
     p.add_argument("--check", action="store_true", help="compare onnxruntime with torch on a random batch and on "
                    "real frames (a zoo model's probe frames, or --data's); a non-finite output fails the check")
     p.add_argument("--data", default=None, metavar="DIR", help="--check: a dataset to draw the real frames from "
@@ -70,8 +70,12 @@ def export_onnx(checkpoint: str | Path, onnx_path: str | Path, opset: int = OPSE
     from yawil.policy.checkpoint import load_checkpoint, model_from_checkpoint
     from yawil.policy.engine import graph_module, graph_outputs, image_size
 
-    if opset < 17:
-        raise ValueError(f"--opset {opset}: expected >= 17")
+    try:  # the TorchScript exporter's newest opset (dynamo=False below); a larger one ended in a traceback
+        from torch.onnx._constants import ONNX_TORCHSCRIPT_EXPORTER_MAX_OPSET as newest
+    except ImportError:
+        newest = 20
+    if not 17 <= opset <= newest:
+        raise ValueError(f"--opset {opset}: expected 17 to {newest}")
     ckpt = load_checkpoint(checkpoint)
     model = model_from_checkpoint(ckpt).eval()
     names = input_names(model)

@@ -152,12 +152,12 @@ class DaggerConfig:
         return ExecutorConfig(self.executor, self.ray_address)
 
     def beta_of(self, r: int) -> float:
-        return float(self.beta[min(r, len(self.beta)) - 1])
+        return float(_of_round(self.beta, r))
 
     def traffic_of(self, r: int) -> dict[str, tuple[int, int]]:
         """Round r's traffic as `collect` takes it (only what is set: the rest is collect's default)."""
-        return {key: v[min(r, len(v)) - 1] for key, v in (("vehicles", self.round_vehicles),
-                                                         ("pedestrians", self.round_pedestrians)) if v is not None}
+        return {key: _of_round(v, r) for key, v in (("vehicles", self.round_vehicles),
+                                                   ("pedestrians", self.round_pedestrians)) if v is not None}
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)
@@ -170,6 +170,11 @@ class DaggerConfig:
 
 # settings given per round (the last repeats): a finished run may grow rounds whose values differ from here on
 PER_ROUND = ("beta", "round_vehicles", "round_pedestrians")
+
+
+def _of_round(values: Sequence[Any], r: int) -> Any:
+    """Round r's entry of a per-round setting (rounds count from 1; the last entry repeats)."""
+    return values[min(r, len(values)) - 1]
 
 
 def _per_round_traffic(v: Any) -> Any:
@@ -188,7 +193,7 @@ def _round_value(d: dict[str, Any], name: str, r: int) -> Any:
         v = _per_round_traffic(v)
     if v is None or not isinstance(v, (list, tuple)) or not v:
         return v
-    item = v[min(r, len(v)) - 1]
+    item = _of_round(v, r)
     return tuple(item) if isinstance(item, (list, tuple)) else item
 
 

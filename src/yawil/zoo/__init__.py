@@ -28,6 +28,7 @@ from typing import Any
 ZOO_DIR = Path(__file__).resolve().parent
 PREFIX = "zoo:"
 WEIGHTS, CARD, PROBE = "model.pt", "card.json", "probe.npz"
+PROBE_FRAMES = 8  # frames of its dataset a packed model's outputs are recorded on (`zoo check` compares them)
 
 
 def zoo_names(root: Path | None = None) -> list[str]:

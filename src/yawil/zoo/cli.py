@@ -18,6 +18,8 @@ from typing import Any
 
 
 def add_parser(subparsers: Any) -> argparse.ArgumentParser:
+    from yawil.zoo import PROBE_FRAMES
+
     p: argparse.ArgumentParser = subparsers.add_parser(
         "zoo", help="the trained models shipped with yawil: list, check, pack", description=__doc__,
         formatter_class=argparse.RawDescriptionHelpFormatter)
@@ -26,7 +28,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--name", help="pack: the zoo model's name")
     p.add_argument("--data", help="pack: the dataset the probe frames are drawn from")
     p.add_argument("--card", help="pack: a JSON file of the card's fields")
-    p.add_argument("--frames", type=int, default=None, help="pack: probe frames (default 8)")
+    p.add_argument("--frames", type=int, default=None, help=f"pack: probe frames (default {PROBE_FRAMES})")
     p.add_argument("--out", default=None, help="pack: the zoo folder to write NAME into (default ./zoo; the "
                    "shipped zoo is src/yawil/zoo)")
     p.add_argument("--force", action="store_true", help="pack: replace a model of the same name")
@@ -59,7 +61,7 @@ def run(args: argparse.Namespace) -> int:
         card = json.loads(Path(args.card).read_text())
     except (OSError, json.JSONDecodeError) as err:
         raise ValueError(f"--card {args.card}: not a readable JSON file ({err})") from None
-    frames = 8 if args.frames is None else args.frames
+    frames = zoo.PROBE_FRAMES if args.frames is None else args.frames
     if frames < 1:
         raise ValueError(f"--frames {frames}: expected >= 1")
     folder = pack.pack(args.names[0], args.name, Path(args.data), pack.check_card(card, f"--card {args.card}"),

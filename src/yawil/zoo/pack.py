@@ -14,7 +14,7 @@ import torch
 from yawil.fileio import write_json_atomic
 from yawil.policy.checkpoint import RESUME_KEYS, load_checkpoint, save_checkpoint
 from yawil.policy.probe import read_probe, sample_probe  # noqa: F401  (re-exported: pack's own names)
-from yawil.zoo import CARD, PROBE, WEIGHTS, ZOO_DIR, read_card, zoo_dir
+from yawil.zoo import CARD, PROBE, PROBE_FRAMES, WEIGHTS, ZOO_DIR, read_card, zoo_dir
 
 PROBE_TOLERANCE = 1e-3  # max |output - card| on the probe frames (float32 on any CPU agrees far closer)
 DROP_KEYS = (*RESUME_KEYS, "scaler", "runtime", "rng_ranks", "raw_state_dict", "ema", "resume_sha256")
@@ -108,7 +108,7 @@ def check_card(card: Any, where: str) -> dict[str, Any]:
 
 
 def pack(checkpoint: str | Path, name: str, data: Path, card: dict[str, Any], root: Path | None = None,
-         count: int = 8, force: bool = False) -> Path:
+         count: int = PROBE_FRAMES, force: bool = False) -> Path:
     """Write zoo model `name` into `root` (default: the shipped zoo) from a training checkpoint: compact weights,
     probe frames, the card with the probe's outputs, the largest difference of the compact model from the
     checkpoint on them and the weights' SHA-256. Everything is checked first (name, card, dataset, an existing

@@ -41,7 +41,7 @@ def _run(argv: list[str]) -> tuple[int, list[str]]:
         try:
             rc = main(argv)
         except SystemExit as exit_:
-            rc = exit_.code if isinstance(exit_.code, int) else 1
+            rc = exit_.code if isinstance(exit_.code, int) else 2  # as `yawil.cli.entry` gives a one-line exit
             if not isinstance(exit_.code, int):
                 err.write(str(exit_.code))
     return rc, [line for line in err.getvalue().splitlines() if line.strip()]
@@ -83,9 +83,12 @@ def test_the_rule_itself(tree: Path) -> None:
     assert owning_folder(tree / "run" / "sub" / "x.png") == tree / "run"  # a folder inside a run is the run's
     assert owning_folder(tree / "mine.csv") is None and owning_folder(tree / "web" / "app.js") is None
     assert check_output_file(tree / "web" / "app.js", "--out", force=True) == tree / "web" / "app.js"
-    assert check_output_file(tree / "data" / "stats.png", "--out") == tree / "data" / "stats.png"  # a new file
+    with pytest.raises(ValueError, match="inside"):  # a new file inside a dataset: its readers would find it
+        check_output_file(tree / "data" / "notes.png", "--out", force=True)
+    own = (tree / "data" / "stats.png",)
+    assert check_output_file(tree / "data" / "stats.png", "--out", own=own) == tree / "data" / "stats.png"
     (tree / "data" / "stats.png").write_bytes(b"png")
-    check_output_file(tree / "data" / "stats.png", "--out", own=("stats.png",))  # the command's own product
+    check_output_file(tree / "data" / "stats.png", "--out", own=own)  # the command's own product, replaced
     with pytest.raises(ValueError, match="inside"):
         check_output_file(tree / "data" / "stats.png", "--out", force=True)
     assert check_output_file(tree / "mine.csv", "--out", force=True) == tree / "mine.csv"
@@ -137,3 +140,73 @@ def test_the_folder_rule_itself(tree: Path) -> None:
     (tree / "web" / OUTPUT_MARKER).write_text("not json")
     with pytest.raises(ValueError, match="entries"):
         check_output_folder(tree / "web", "--out", "report")
+
+
+# a new file or folder inside a folder a stage owns, and a pipeline folder that holds what the pipeline did not
+# write: (argv with {t}, the path that must not appear, text of the one line)
+NEW_PATH_CASES = [
+    (["data", "stats", "{t}/data", "--out", "{t}/data/episodes/x.png"], "data/episodes/x.png", "inside"),
+    (["export", "{t}/run/best.pt", "--onnx", "{t}/run/model.onnx"], "run/model.onnx", "inside"),
+    (["trace", "straight/training/ClearNoon/0/0", "--agent", "expert", "--out", "{t}/data/t.csv"], "data/t.csv",
+     "inside"),
+    (["results", "--out", "{t}/run/results.md"], "run/results.md", "inside"),
+    (["select", "{t}/run/best.pt", "--out", "{t}/sel", "--link", "{t}/run/chosen.pt"], "run/chosen.pt", "inside"),
+    (["report", "{t}/run", "--out", "{t}/run/report"], "run/report", "inside"),
+    (["sim", "view", "--out", "{t}/data/episodes/view"], "data/episodes/view", "inside"),
+    (["collect", "--out", "{t}/data/episodes/more", "--frames", "10"], "data/episodes/more", "inside"),
+    (["train", "--data", "{t}/data", "--out", "{t}/run/again"], "run/again", "inside"),
+    (["bench", "--agent", "expert", "--out", "{t}/data/bench"], "data/bench", "inside"),
+    (["dagger", "--out", "{t}/run/dagger"], "run/dagger", "inside"),
+    (["data", "subset", "{t}/data", "--out", "{t}/run/subset", "--only", "all"], "run/subset", "inside"),
+    (["select", "{t}/run/best.pt", "--out", "{t}/web"], "web/.yawil-output", "entries"),
+    (["select", "{t}/run/best.pt", "--out", "{t}/data"], "data/.yawil-output", "dataset"),
+    (["demo", "--out", "{t}/web"], "web/.yawil-output", "entries"),
+    (["demo", "--out", "{t}/run/demo"], "run/demo", "inside"),
+    (["demo", "--seed", "-1", "--out", "{t}/fresh"], "fresh", "--seed"),
+    (["reproduce", "--out", "{t}/web"], "web/.yawil-output", "entries"),
+    (["experiment", "square", "--out", "{t}/web"], "web/.yawil-output", "entries"),
+    (["experiment", "square", "--seed", "-1", "--out", "{t}/fresh"], "fresh", "--seed"),
+]
+
+
+@pytest.mark.parametrize("argv, absent, text", NEW_PATH_CASES,
+                         ids=[" ".join(c[0][:2]) + f" {i}" for i, c in enumerate(NEW_PATH_CASES)])
+def test_nothing_is_written_inside_another_stages_folder(tree: Path, argv: list[str], absent: str,
+                                                         text: str) -> None:
+    t0 = time.perf_counter()
+    rc, lines = _run([a.replace("{t}", str(tree)) for a in argv])
+    assert rc == 2 and len(lines) == 1 and text in lines[0], lines
+    assert not (tree / absent).exists()
+    assert sorted(p.name for p in (tree / "web").iterdir()) == ["app.js", "manifest.json"]
+    assert time.perf_counter() - t0 < 30.0  # refused before any work
+
+
+def test_a_pipeline_folder_is_claimed_and_resumed(tree: Path) -> None:
+    from yawil.fileio import OUTPUT_MARKER, check_pipeline_folder, claim_pipeline_folder
+
+    assert check_pipeline_folder(tree / "new", "--out", "demo") == tree / "new"
+    claim_pipeline_folder(tree / "new", "demo")
+    (tree / "new" / "data").mkdir()  # killed in its first stage: the mark alone says whose folder it is
+    check_pipeline_folder(tree / "new", "--out", "demo")
+    with pytest.raises(ValueError, match="entries yawil select did not write"):
+        check_pipeline_folder(tree / "new", "--out", "select")
+    (tree / "old" / "stages").mkdir(parents=True)  # a folder from before the mark: its stages/ says it
+    check_pipeline_folder(tree / "old", "--out", "demo", signature=("stages",))
+    assert not (tree / "old" / OUTPUT_MARKER).exists()
+    with pytest.raises(ValueError, match="is a file"):
+        check_pipeline_folder(tree / "mine.csv", "--out", "demo")
+
+
+def test_an_unwritable_place_is_refused_before_the_work(tree: Path) -> None:
+    with pytest.raises(ValueError, match="cannot write in /proc"):
+        check_output_file("/proc/x.png", "--out")
+    assert not list(tree.glob("**/.yawil-probe-*"))
+    check_output_file(tree / "deep" / "er" / "x.png", "--out")  # the writers make missing folders
+    assert not (tree / "deep").exists() and not list(tree.glob(".yawil-probe-*"))
+
+
+def test_a_bad_readme_is_refused_before_the_page_is_written(tree: Path) -> None:
+    (tree / "README.md").write_text("no markers here\n")
+    rc, lines = _run(["results", "--out", str(tree / "page.md"), "--readme", str(tree / "README.md")])
+    assert rc == 2 and len(lines) == 1 and "--readme" in lines[0], lines
+    assert not (tree / "page.md").exists()

@@ -130,27 +130,40 @@ def owning_folder(path: str | os.PathLike[str]) -> Path | None:
 
 
 def check_output_file(path: str | os.PathLike[str], option: str, force: bool = False,
-                      own: tuple[str, ...] = ()) -> Path:
-    """Refuse, in one line naming the file, an output file that would replace a file the command did not make:
-    an existing file needs `force` (`--force`), and a file inside a dataset, run, results or zoo folder is never
-    replaced, whatever `force` says. `own`: names this command itself writes there (its default output, e.g. a
-    dataset's stats.png), which it may replace. Checked before any work, so a refusal costs nothing."""
+                      own: tuple[str | os.PathLike[str], ...] = ()) -> Path:
+    """Refuse, in one line naming the file, an output file that would replace a file the command did not make
+    or land inside a folder a yawil stage owns: an existing file needs `force` (`--force`); a file inside a
+    dataset, run, results or zoo folder is refused, new or not, whatever `force` says (its readers find every
+    file there: `episodes/` is read recursively). `own`: the paths this command itself writes (its default
+    output, e.g. a dataset's stats.png), which it may write or replace there. Checked before any work."""
     path = Path(path)
     if path.is_dir():
         raise ValueError(f"{option} {path}: is a folder; expected the name of a file to write")
     if path.name in OWNED_MARKERS or path.name.startswith(".yawil"):
         raise ValueError(f"{option} {path}: a yawil bookkeeping file; write elsewhere")
+    mine = any(path.absolute() == Path(o).absolute() for o in own)
+    owner = None if mine else owning_folder(path)
+    if owner is not None:
+        raise ValueError(f"{option} {path}: inside {owner}, which a yawil dataset, run, results or model owns; "
+                         "write the file elsewhere (--force does not write there)")
     if not path.exists() and not path.is_symlink():
         _check_writable_parent(path, option)
         return path
-    if path.name in own:
-        return path
-    owner = owning_folder(path)
-    if owner is not None:
-        raise ValueError(f"{option} {path}: exists inside {owner}, which a yawil dataset, run or model owns; "
-                         "write the file elsewhere (--force does not replace files there)")
-    if not force:
+    if not mine and not force:
         raise ValueError(f"{option} {path}: exists; give --force to replace it, or another file name")
+    return path
+
+
+def check_not_inside_owned(path: str | os.PathLike[str], option: str) -> Path:
+    """Refuse, in one line, a new stage folder (a dataset, run, results or pipeline folder) inside another
+    stage's folder: a dataset collected into another's `episodes/` is read as part of it, and a run inside a
+    results folder mixes two products. The stages nest their own sub-folders (DAgger's rounds, select's
+    candidates) through their Python calls, not through this check."""
+    path = Path(path)
+    owner = owning_folder(path)  # from the folder holding `path` upwards: `path` itself may be the stage's own
+    if owner is not None:
+        raise ValueError(f"{option} {path}: inside {owner}, which a yawil dataset, run, results or model owns; "
+                         "give a folder outside it")
     return path
 
 
@@ -177,38 +190,79 @@ def check_output_folder(path: str | os.PathLike[str], option: str, command: str,
     A folder is fine when it does not exist, is empty, or was written before by the same `command` (its
     `OUTPUT_MARKER` says so: a report is regenerated in place). A user's folder with other files needs `force`
     (same-named files are then replaced); a file, or a folder a yawil stage owns (dataset, run, results, zoo
-    model: `OWNED_MARKERS`), is refused whatever `force` says. Checked before any work."""
+    model: `OWNED_MARKERS`) or lying inside one, is refused whatever `force` says. Checked before any work."""
     path = Path(path)
     if path.exists() and not path.is_dir():
         raise ValueError(f"{option} {path}: is a file; expected a folder to write into")
+    check_not_inside_owned(path, option)  # a new folder there too: its files would be read as the stage's
     if not path.exists():
         _check_writable_parent(path, option)
         return path
     for marker, beside in OWNED_MARKERS.items():
         if (path / marker).exists() and (beside is None or (path / beside).exists()):
             raise ValueError(f"{option} {path}: a yawil dataset, run, results or model folder; give a new folder "
-                             f"(for example {path / command}); --force does not write there")
+                             f"outside it (for example {command}/); --force does not write there")
     try:
         entries = [e.name for e in path.iterdir()]
     except OSError as err:
         raise ValueError(f"{option} {path}: cannot be read ({err.strerror or err})") from None
     if not entries:
         return path
-    try:
-        made_by = json.loads((path / OUTPUT_MARKER).read_text(encoding="utf-8")).get("command")
-    except (OSError, ValueError, AttributeError):
-        made_by = None
+    made_by = _made_by(path)
     if made_by == command:
         return path
-    owner = owning_folder(path / OUTPUT_MARKER)  # a subfolder of a dataset, run, results or model folder
-    if owner is not None:
-        raise ValueError(f"{option} {path}: holds files inside {owner}, which a yawil dataset, run, results or model "
-                         "owns; give a new or empty folder (--force does not write there)")
     if force:
         return path
     what = f"was written by `yawil {made_by}`" if made_by else f"holds {len(entries)} entries yawil {command} did not write"
     raise ValueError(f"{option} {path}: {what}; give a new or empty folder, or --force to write beside them "
                      "(files of the same name are replaced)")
+
+
+def check_pipeline_folder(path: str | os.PathLike[str], option: str, command: str,
+                          signature: tuple[str, ...] = ()) -> Path:
+    """Refuse, in one line, a pipeline's output folder (demo, reproduce, experiment, select) that holds what
+    the pipeline did not write: a user's files, a dataset, a run. Fine: a new or empty folder, one marked as
+    `command`'s (`claim_pipeline_folder`), or one holding an entry of `signature` (what the pipeline wrote
+    before the mark existed, so older folders resume). Why: these pipelines resume by reading their folder, so
+    a foreign folder was written into and its files read as the pipeline's. Checked before any work."""
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise ValueError(f"{option} {path}: is a file; expected a folder to write into")
+    check_not_inside_owned(path, option)
+    if not path.exists():
+        _check_writable_parent(path, option)
+        return path
+    for marker, beside in OWNED_MARKERS.items():
+        if (path / marker).exists() and (beside is None or (path / beside).exists()):
+            raise ValueError(f"{option} {path}: a yawil dataset, run, results or model folder, not a {command} "
+                             "folder; give a new folder")
+    try:
+        entries = {e.name for e in path.iterdir()}
+    except OSError as err:
+        raise ValueError(f"{option} {path}: cannot be read ({err.strerror or err})") from None
+    if not entries or _made_by(path) == command or entries & set(signature):
+        return path
+    held = f"{len(entries)} entr{'y' if len(entries) == 1 else 'ies'}"
+    raise ValueError(f"{option} {path}: holds {held} yawil {command} did not write; give a new or empty folder "
+                     f"(a {command} folder is resumed where it stopped)")
+
+
+def claim_pipeline_folder(path: str | os.PathLike[str], command: str) -> Path:
+    """Mark a folder `check_pipeline_folder` allowed as `command`'s before its first stage writes there, so that
+    an interrupted run is recognised and resumed (its first stage's files alone are no proof)."""
+    path = make_folder(path, f"{command} output")
+    if _made_by(path) != command:
+        write_json_atomic(path / OUTPUT_MARKER, {"command": command})
+    return path
+
+
+def _made_by(folder: Path) -> str | None:
+    """The command an `OUTPUT_MARKER` in `folder` names, or None."""
+    try:
+        made_by = json.loads((folder / OUTPUT_MARKER).read_text(encoding="utf-8")).get("command")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return made_by if isinstance(made_by, str) else None
 
 
 def claim_output_folder(path: str | os.PathLike[str], command: str) -> Path:
@@ -247,13 +301,19 @@ def claimed_output_folder(path: str | os.PathLike[str], command: str) -> Iterato
 
 def _check_writable_parent(path: Path, option: str) -> None:
     """The nearest existing folder above a new file must be a folder this process can write in (the writers make
-    the missing ones): a file there, or /proc, failed only at the write, after the work."""
+    the missing ones): a file there, or /proc, failed only at the write, after the work. Tried with a file
+    made and removed at once: `os.access` says yes to root in /proc and on a read-only mount."""
     for p in path.absolute().parents:
         if p.exists():
             if not p.is_dir():
                 raise ValueError(f"{option} {path}: its parent {p} is a file; expected a folder")
-            if not os.access(p, os.W_OK | os.X_OK):
-                raise ValueError(f"{option} {path}: cannot write in {p}")
+            try:
+                fd, probe = tempfile.mkstemp(dir=p, prefix=".yawil-probe-")
+            except OSError as err:
+                raise ValueError(f"{option} {path}: cannot write in {p} ({err.strerror or err})") from None
+            os.close(fd)
+            with contextlib.suppress(OSError):
+                os.unlink(probe)
             return
 
 

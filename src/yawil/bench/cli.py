@@ -244,6 +244,9 @@ def _run_suite(args: argparse.Namespace) -> int:
     out = Path(args.out) if args.out else Path("results") / (
         "expert" if spec.is_expert else spec.checkpoint.resolve().parent.name
     )
+    from yawil.fileio import check_not_inside_owned
+
+    check_not_inside_owned(out, "--out")
     try:
         summary = run_benchmark(
             eps,

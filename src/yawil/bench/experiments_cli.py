@@ -57,9 +57,15 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
 def run(args: argparse.Namespace) -> int:
     from yawil.bench.experiments import noise_experiment, square_experiment
+    from yawil.fileio import check_pipeline_folder, claim_pipeline_folder
 
     try:
+        if args.seed < 0:
+            raise ValueError(f"--seed {args.seed}: expected an integer >= 0")
+        # square writes the folder, noise reads square's models from it and adds Table II
+        check_pipeline_folder(args.out, "--out", "experiment", signature=("profile.json",))
         if args.which == "square":
+            claim_pipeline_folder(args.out, "experiment")
             square_experiment(args.out, args.profile, seed=args.seed)
         else:
             models = [m.strip() for m in args.models.split(",")] if args.models else None

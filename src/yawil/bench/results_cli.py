@@ -36,17 +36,24 @@ def run(args: argparse.Namespace) -> int:
         ours = out.is_file() and out.read_text(encoding="utf-8").startswith(TITLE)
     except (OSError, UnicodeDecodeError):
         ours = False
-    check_output_file(out, "--out", args.force, own=(out.name,) if ours else ())
+    check_output_file(out, "--out", args.force, own=(out,) if ours else ())
+    readme = None
+    if args.readme:  # checked before the page is written: a bad README left a new page and exit 2
+        readme = Path(args.readme)
+        check_output_file(readme, "--readme", force=True)  # the user's README is rewritten in place, by design
+        try:
+            text = readme.read_text(encoding="utf-8")
+        except (OSError, UnicodeDecodeError) as err:
+            raise ValueError(f"--readme {readme}: cannot be read as text ({getattr(err, 'strerror', None) or err})") from None
+        if text.count(README_START) != 1 or text.count(README_END) != 1:
+            raise ValueError(f"--readme {readme}: expected one line {README_START!r} and one {README_END!r} around "
+                             "the headline block")
     rows, notes, attention = read_results_manifest(args.manifest)
     page = write_atomic(args.out, render(rows, notes, str(args.manifest), attention))
     print(f"wrote {page} ({len(rows)} rows)")
-    if args.readme:
-        text = Path(args.readme).read_text(encoding="utf-8")
-        if text.count(README_START) != 1 or text.count(README_END) != 1:
-            raise ValueError(f"{args.readme}: expected one line {README_START!r} and one {README_END!r} around "
-                             "the headline block")
+    if readme is not None:
         head, rest = text.split(README_START)
         _, tail = rest.split(README_END)
-        write_atomic(args.readme, head + README_START + "\n" + headline_block(rows) + README_END + tail)
-        print(f"wrote the headline block of {args.readme}")
+        write_atomic(readme, head + README_START + "\n" + headline_block(rows) + README_END + tail)
+        print(f"wrote the headline block of {readme}")
     return 0

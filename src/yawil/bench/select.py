@@ -149,11 +149,12 @@ def run(args: argparse.Namespace) -> int:
         for p in paths:
             if not p.is_file():
                 raise ValueError(f"{p}: no such checkpoint file")
-        if args.link:
-            from yawil.fileio import check_output_file
+        from yawil.fileio import check_output_file, check_pipeline_folder, claim_pipeline_folder
 
+        check_pipeline_folder(args.out, "--out", "select", signature=("selection.json",))
+        if args.link:
             check_output_file(args.link, "--link", args.force)  # before any candidate is driven
-        result = select_checkpoint(paths, Path(args.out), args.routes, args.workers, not args.no_progress,
+        result = select_checkpoint(paths, claim_pipeline_folder(args.out, "select"), args.routes, args.workers, not args.no_progress,
                                    args.speed_control, args.stop_release, args.engine, args.episodes_per_worker,
                                    args.stop_creep)
         if args.link:

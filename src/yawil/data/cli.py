@@ -56,7 +56,9 @@ def run(args: argparse.Namespace) -> int:
             return _stats(args)
         if args.data_command == "subset":
             from yawil.data.subset import write_subset
+            from yawil.fileio import check_not_inside_owned
 
+            check_not_inside_owned(args.out, "--out")
             write_subset(args.src, args.out, args.only, quiet=False)
             return 0
     except ValueError as err:
@@ -80,14 +82,10 @@ def _stats(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     from yawil.data.stats import write_stats
-    from yawil.fileio import check_output_file, owning_folder
+    from yawil.fileio import check_output_file
 
     out = Path(args.out) if args.out else Path(args.dirs[0]) / "stats.png"
-    check_output_file(out, "--out", args.force, own=("stats.png",))
-    owner = owning_folder(out)  # a new file there is one more file its readers find (episodes/ is rglob'd)
-    if owner is not None and not (out.name == "stats.png" and out.resolve().parent == owner.resolve()
-                                  and owner.resolve() in {Path(d).resolve() for d in args.dirs}):
-        raise ValueError(f"--out {out}: inside {owner}, which a yawil dataset, run, results or model owns; write "
-                         "the figure elsewhere (without --out it is DIR/stats.png of the first DIR)")
+    # a dataset's own figure (DIR/stats.png) may be written or replaced; any other file inside a dataset is refused
+    check_output_file(out, "--out", args.force, own=tuple(Path(d) / "stats.png" for d in args.dirs))
     print(f"wrote {write_stats(args.dirs, out)}")
     return 0

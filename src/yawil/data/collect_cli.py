@@ -133,8 +133,10 @@ def run(args: argparse.Namespace) -> int:
     from yawil.data.collect import collect
     from yawil.data.collect_config import DEFAULT_FRAMES
     from yawil.expert import ExpertConfig
+    from yawil.fileio import check_not_inside_owned
     from yawil.guidance import GuidanceConfig
 
+    check_not_inside_owned(args.out, "--out")  # a dataset inside another's episodes/ is read as part of it
     if args.frames is None and args.episodes is None:
         args.frames = DEFAULT_FRAMES
     expert = ExpertConfig.from_items(args.expert_arg)

@@ -183,6 +183,9 @@ def run(args: argparse.Namespace) -> int:
     rank = int(os.environ.get("RANK", "0") or 0) if int(os.environ.get("WORLD_SIZE", "1") or 1) > 1 else 0
     try:
         cfg = build_config(args)
+        from yawil.fileio import check_not_inside_owned
+
+        check_not_inside_owned(cfg.out, "--out")  # a run inside a dataset or another run mixes two products
         result = train(cfg, resume=bool(args.resume), dist_backend=getattr(args, "dist_backend", None))
     except (ValueError, FileNotFoundError, FileExistsError) as err:  # bad settings or data: no traceback
         if rank == 0:

@@ -494,6 +494,9 @@ def run(args: argparse.Namespace) -> int:
         from yawil.learn.config import TrainConfig
 
         TrainConfig.from_dict({"model": cfg.model, **cfg.train_args}, "--train-arg")  # bad values fail before any work
+        from yawil.fileio import check_not_inside_owned
+
+        check_not_inside_owned(args.out, "--out")
         DaggerRun(Path(args.out), cfg, log=lambda m: print(f"[dagger {time.strftime('%H:%M:%S')}] {m}", flush=True),
                   progress=not args.no_progress).run()
     except (ValueError, FileNotFoundError, FileExistsError) as err:

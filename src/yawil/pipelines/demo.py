@@ -101,6 +101,10 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
 
 def run(args: argparse.Namespace) -> int:
+    from yawil.fileio import check_pipeline_folder, claim_pipeline_folder
+
+    if args.seed < 0:  # refused before the folder is made (collect would refuse it after)
+        raise ValueError(f"--seed {args.seed}: expected an integer >= 0")
     budget = DemoBudget(
         frames=args.frames,
         max_steps=args.max_steps,
@@ -109,7 +113,8 @@ def run(args: argparse.Namespace) -> int:
         routes=args.routes,
         video_steps=args.video_steps,
     )
-    run_demo(Path(args.out), budget, seed=args.seed)
+    check_pipeline_folder(args.out, "--out", "demo", signature=("stages",))
+    run_demo(claim_pipeline_folder(args.out, "demo"), budget, seed=args.seed)
     return 0
 
 

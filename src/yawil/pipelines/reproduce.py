@@ -96,8 +96,15 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
 
 def run(args: argparse.Namespace) -> int:
+    from yawil.fileio import check_pipeline_folder, claim_pipeline_folder
     from yawil.stages import run_stage
 
+    if args.seed < 0:
+        raise SystemExit(f"yawil reproduce: --seed {args.seed}: expected an integer >= 0")
+    try:  # a user's folder or a dataset is refused before any stage (the stages resume by reading it)
+        check_pipeline_folder(args.out, "--out", "reproduce", signature=("stages",))
+    except ValueError as err:
+        raise SystemExit(f"yawil reproduce: {err}") from None
     if args.profile == "zoo":
         return run_zoo(args)
     for flag, given in (("--install", args.install), ("--zoo-models", args.zoo_models is not None)):
@@ -105,8 +112,13 @@ def run(args: argparse.Namespace) -> int:
             raise SystemExit(f"yawil reproduce: {flag} applies to --profile zoo only (the zoo's models); "
                              f"--profile {args.profile} makes none")
     profile = PROFILES[args.profile]
-    if args.pretrained and not Path(args.pretrained).is_file():
-        raise SystemExit(f"yawil reproduce: --pretrained {args.pretrained}: no such file")
+    if args.pretrained:  # read now, not at the training stage after the collection and two trainings
+        from yawil.models.resnet import build_resnet34, load_imagenet_weights
+
+        try:
+            load_imagenet_weights(build_resnet34(), args.pretrained)
+        except (ValueError, FileNotFoundError) as err:
+            raise SystemExit(f"yawil reproduce: --pretrained {args.pretrained}: {err}") from None
     plan = stages(Path(args.out), profile, args.pretrained, seed=args.seed, device=args.device)
     print(f"profile {profile.name}: {json.dumps(asdict(profile))}")
     for name, _ in plan:
@@ -122,6 +134,7 @@ def run(args: argparse.Namespace) -> int:
     def say(msg: str) -> None:
         print(f"[reproduce] {msg}", flush=True)
 
+    claim_pipeline_folder(args.out, "reproduce")
     for name, fn in plan:
         run_stage(Path(args.out) / "stages" / f"{name}.json", fn, say, name)
     print(f"[reproduce] report: {Path(args.out) / 'report' / 'report.html'}")
@@ -129,6 +142,7 @@ def run(args: argparse.Namespace) -> int:
 
 
 def run_zoo(args: argparse.Namespace) -> int:
+    from yawil.fileio import claim_pipeline_folder
     from yawil.pipelines import zoo
     from yawil.stages import run_stage
 
@@ -141,6 +155,7 @@ def run_zoo(args: argparse.Namespace) -> int:
         print(f"  stage {name}")
     if args.dry_run:
         return 0
+    claim_pipeline_folder(out, "reproduce")
     for name, fn in plan:
         run_stage(out / "stages" / f"{name}.json", fn, lambda m: print(f"[reproduce zoo] {m}", flush=True), name)
     print(f"[reproduce zoo] models in {'the repository zoo' if args.install else out / 'zoo'}")

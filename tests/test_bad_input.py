@@ -22,7 +22,6 @@ CASES = [
     (["collect", "--frames", "10", "--workers", "0", "--out", "{t}/c"], "workers must be >= 1", None),
     (["collect", "--frames", "-5", "--out", "{t}/c"], "frames must be >= 1", None),
     (["collect", "--frames", "10", "--min-route-length", "1e9", "--out", "{t}/c"], "below 1e5 m", "{t}/c"),
-    (["collect", "--frames", "10", "--seed", "-1", "--out", "{t}/c"], "--seed -1", "{t}/c"),
     (["dagger", "--model", "cil", "--takeover-lateral", "-1", "--out", "{t}/g"], "takeover_lateral", "{t}/g"),
     (["dagger", "--model", "cil", "--town", "bogus", "--out", "{t}/g"], "unknown town 'bogus'", "{t}/g"),
     (["bench", "--suite", "corl2017", "--tasks", "straight", "--routes", "5:2", "--out", "{t}/b"], "selects no route", "{t}/b"),
@@ -55,6 +54,10 @@ CASES = [
      "--tail -3", "{t}/t.csv"),
     (["zoo", "check", "nosuchmodel", "--out", "{t}/z"], "--out applies to zoo pack only", "{t}/z"),
     (["reproduce", "--install", "--dry-run", "--out", "{t}/rp"], "--install applies to --profile zoo", "{t}/rp"),
+    ([*ONE_EPISODE, "--engine", "openvino", "--out", "{t}/b"], "--engine openvino: applies to learned agents", "{t}/b"),
+    (["export", "{t}/afile", "--onnx", "{t}/m.onnx", "--tolerance", "0.1"], "--tolerance 0.1: applies to --check",
+     "{t}/m.onnx"),
+    (["export", "{t}/afile", "--onnx", "{t}/m.onnx", "--batch", "8"], "--batch 8: applies to --check", "{t}/m.onnx"),
 ]
 
 
@@ -203,3 +206,19 @@ def test_bench_routes_never_replaces_a_users_file(tmp_path: Path, capsys: pytest
     with pytest.raises(SystemExit) as exit_:
         main(["bench", "routes", "--town", "town01", "--routes-dir", str(tmp_path)])
     assert "is not a yawil route file" in str(exit_.value.code) and mine.read_text() == '{"mine": 1}'
+
+
+def test_explain_count_beyond_the_dataset_is_refused_before_the_agent(tmp_path: Path, tiny_dataset: Any,
+                                                                      monkeypatch: pytest.MonkeyPatch) -> None:
+    from yawil.agent import Agent
+
+    def never(cls: Any, path: Any, **kw: Any) -> Any:
+        raise AssertionError("the agent was built before --count was checked")
+
+    monkeypatch.setattr(Agent, "from_checkpoint", classmethod(never))
+    data = tiny_dataset(episodes=2, frames=5)
+    (tmp_path / "x.pt").write_bytes(b"weights")
+    rc, line = _one_line(["explain", "--checkpoint", str(tmp_path / "x.pt"), "--frames", str(data), "--count", "11",
+                          "--out", str(tmp_path / "e")])
+    assert rc == 2 and "--count 11" in line and "holds 10 frames" in line, line
+    assert not (tmp_path / "e").exists()

@@ -162,10 +162,8 @@ NEW_PATH_CASES = [
     (["select", "{t}/run/best.pt", "--out", "{t}/data"], "data/.yawil-output", "dataset"),
     (["demo", "--out", "{t}/web"], "web/.yawil-output", "entries"),
     (["demo", "--out", "{t}/run/demo"], "run/demo", "inside"),
-    (["demo", "--seed", "-1", "--out", "{t}/fresh"], "fresh", "--seed"),
     (["reproduce", "--out", "{t}/web"], "web/.yawil-output", "entries"),
     (["experiment", "square", "--out", "{t}/web"], "web/.yawil-output", "entries"),
-    (["experiment", "square", "--seed", "-1", "--out", "{t}/fresh"], "fresh", "--seed"),
 ]
 
 
@@ -210,3 +208,13 @@ def test_a_bad_readme_is_refused_before_the_page_is_written(tree: Path) -> None:
     rc, lines = _run(["results", "--out", str(tree / "page.md"), "--readme", str(tree / "README.md")])
     assert rc == 2 and len(lines) == 1 and "--readme" in lines[0], lines
     assert not (tree / "page.md").exists()
+
+
+@pytest.mark.parametrize("argv", [["demo"], ["experiment", "square"], ["reproduce"], ["collect", "--frames", "10"],
+                                  ["dagger"], ["sim", "view"], ["sim", "routes"], ["bench", "routes"],
+                                  ["explain", "--checkpoint", "x", "--episode"]])
+def test_a_negative_seed_names_the_option_and_leaves_nothing(tmp_path: Path, argv: list[str]) -> None:
+    out = tmp_path / "fresh"
+    rc, lines = _run([*argv, "--seed", "-1", "--out", str(out)])
+    assert rc == 2 and "argument --seed: expected an integer >= 0, got '-1'" in lines[-1], lines
+    assert not out.exists()

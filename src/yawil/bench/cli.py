@@ -11,6 +11,8 @@ import argparse
 from collections.abc import Callable
 from typing import Any
 
+from yawil.cliargs import seed
+
 
 class ChoiceHelp(argparse.Action):
     """-h/--help that prints the help of the positional choice given before it (`yawil bench routes --help`),
@@ -63,7 +65,7 @@ def _add_route_options(p: argparse.ArgumentParser | argparse._ArgumentGroup, act
     p.add_argument("--town", default=None, help=f"{prefix}town01 | town02 | square (default: all three)")
     p.add_argument("--routes-dir", default=None, help=f"{prefix}folder of route files (default: the package's)")
     if action in (None, "routes"):
-        p.add_argument("--seed", type=int, default=None,  # None: not given (a run refuses it), 0 for routes
+        p.add_argument("--seed", type=seed, default=None,  # None: not given (a run refuses it), 0 for routes
                        help=f"{'routes: ' if action is None else ''}seed of the route draw (default 0)")
 
 

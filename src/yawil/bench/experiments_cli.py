@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 
 from yawil.bench.cli import add_choice_help  # argparse only, like this module
+from yawil.cliargs import seed
 
 _DESCRIPTIONS: dict[str, str] = {
     "square": "Collect on the square map, build the 3 datasets, train 12 models, drive the 32 turning tasks, "
@@ -25,7 +26,7 @@ def _add_options(p: argparse.ArgumentParser, which: str | None) -> None:
         return f"{name}: " if which is None else ""
 
     if which in (None, "square"):
-        p.add_argument("--seed", type=int, default=0,
+        p.add_argument("--seed", type=seed, default=0,
                        help=tag("square") + "seed of collection and training (default 0)")
     if which in (None, "noise"):
         p.add_argument("--noise-seeds", type=int, default=None,
@@ -60,8 +61,6 @@ def run(args: argparse.Namespace) -> int:
     from yawil.fileio import check_pipeline_folder, claim_pipeline_folder
 
     try:
-        if args.seed < 0:
-            raise ValueError(f"--seed {args.seed}: expected an integer >= 0")
         # square writes the folder, noise reads square's models from it and adds Table II
         check_pipeline_folder(args.out, "--out", "experiment", signature=("profile.json",))
         if args.which == "square":

@@ -105,6 +105,8 @@ class AgentSpec:
         check_stop_creep(self.stop_creep, check_stop_release(self.stop_release, speed_control_mode(self.speed_control)))
         if self.expert_args and not self.is_expert:
             raise ValueError("--expert-arg applies to --agent expert only")
+        if self.is_expert and self.engine != "auto":  # it would be accepted and change nothing
+            raise ValueError(f"--engine {self.engine}: applies to learned agents; the expert runs no network")
         if self.device not in ("cpu", "cuda"):
             raise ValueError(f"--device {self.device!r}: expected cpu or cuda (auto is resolved by agent_device)")
         if self.device == "cuda" and not self.is_expert:

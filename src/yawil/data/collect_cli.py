@@ -8,6 +8,8 @@ from __future__ import annotations
 import argparse
 from typing import Any
 
+from yawil.cliargs import seed
+
 
 def int_range(text: str) -> tuple[int, int]:
     """'30' -> (30, 30); '10-30' -> (10, 30)."""
@@ -62,7 +64,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     from yawil.executor import add_executor_arguments
 
     add_executor_arguments(p)
-    p.add_argument("--seed", type=int, default=0, help="episode ids are seed*100000+index (default 0)")
+    p.add_argument("--seed", type=seed, default=0, help="episode ids are seed*100000+index (default 0)")
     p.add_argument("--vehicles", type=int_range, default=d.vehicles, metavar="N|LO-HI",
                    help=f"vehicles per episode: N, or LO-HI drawn uniformly per episode (default {_span(d.vehicles)})")
     p.add_argument("--pedestrians", type=int_range, default=d.pedestrians, metavar="N|LO-HI",

@@ -103,6 +103,24 @@ def _episode_files(root: Path) -> list[Path]:
     return files
 
 
+def check_frame_count(root: Path, count: int) -> None:
+    """`--count` figures need that many frames: refused before the agent is built (a count beyond the dataset
+    drew frames again and again, one figure each). The manifest's counts where there is one, else the files'."""
+    from yawil.data.manifest import read_manifest
+    from yawil.data.reader import open_episode
+
+    files = _episode_files(root)
+    if root.is_dir() and (root / "manifest.json").is_file():
+        total = sum(e.frames for e in read_manifest(root).episodes)
+    else:
+        total = 0
+        for f in files:
+            with open_episode(f) as ep:
+                total += len(ep)
+    if count > total:
+        raise SystemExit(f"yawil explain: --count {count}: {root} holds {total} frames; give at most {total}")
+
+
 def check_guidance(agent: Agent, ep_config: dict, path: Path) -> None:  # type: ignore[type-arg]
     """A guided network explained on frames whose stored guidance it was not trained on would show maps of
     inputs it never saw (an `ego` model on the paper's `route` data): refuse, naming both."""

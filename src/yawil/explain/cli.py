@@ -8,6 +8,8 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
+from yawil.cliargs import seed
+
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:  # type: ignore[type-arg]
     p = subparsers.add_parser(
@@ -29,7 +31,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--force", action="store_true",
                    help="write into an --out folder that holds other files (same-named ones are replaced)")
     p.add_argument("--count", type=int, default=6, help="frames to explain with --frames (default 6)")
-    p.add_argument("--seed", type=int, default=0, help="seed for frame choice / the episode (default 0)")
+    p.add_argument("--seed", type=seed, default=0, help="seed for frame choice / the episode (default 0)")
     p.add_argument("--alpha", type=float, default=0.5, help="weight of the colour map in the blend (default 0.5)")
     p.add_argument("--town", default="town02", help="--episode: town (default town02)")
     p.add_argument("--weather", default="SoftRainSunset", help="--episode: weather (default SoftRainSunset)")
@@ -82,6 +84,13 @@ def run(args: argparse.Namespace) -> int:
         return failures(args, args.out)
     if not args.checkpoint:
         raise SystemExit("yawil explain: --checkpoint is required (except with --failures)")
+    if args.frames and not (args.by_class or args.faithfulness):
+        from yawil.explain.attention import check_frame_count
+        from yawil.zoo import resolve_checkpoint
+
+        if not resolve_checkpoint(args.checkpoint).exists():  # the cheaper refusal first
+            raise SystemExit(f"yawil explain: --checkpoint {args.checkpoint}: does not exist")
+        check_frame_count(Path(args.frames), args.count)
     agent = Agent.from_checkpoint(args.checkpoint)
     with claimed_output_folder(args.out, "explain") as out:  # a refusal from the work below leaves no folder
         if args.by_class:

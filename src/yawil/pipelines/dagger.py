@@ -28,6 +28,7 @@ from dataclasses import asdict, dataclass, field, fields
 from pathlib import Path
 from typing import Any
 
+from yawil.cliargs import seed
 from yawil.executor import ExecutorConfig, add_executor_arguments, executor_from_args
 from yawil.guidance import REFERENCES, GuidanceConfig
 from yawil.policy.speed import (
@@ -406,7 +407,7 @@ def add_parser(subparsers: Any) -> argparse.ArgumentParser:
     p.add_argument("--out", required=True, help="run folder (data/, train/, stages/, dagger.json)")
     p.add_argument("--model", default=d.model, help=f"model name (default {d.model})")
     p.add_argument("--town", default=d.town, help=f"training town (default {d.town})")
-    p.add_argument("--seed", type=int, default=d.seed, help="seed of collection and training (default 0)")
+    p.add_argument("--seed", type=seed, default=d.seed, help="seed of collection and training (default 0)")
     p.add_argument("--expert-frames", type=int, default=d.expert_frames, help=f"round-0 expert frames (default {d.expert_frames})")
     p.add_argument("--rounds", type=int, default=d.rounds, help=f"on-policy rounds (default {d.rounds})")
     p.add_argument("--round-frames", type=int, default=d.round_frames, help=f"frames per round (default {d.round_frames})")

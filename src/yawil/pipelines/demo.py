@@ -31,6 +31,7 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+from yawil.cliargs import seed
 from yawil.stages import read_marker, write_marker
 
 
@@ -87,7 +88,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
         formatter_class=argparse.RawDescriptionHelpFormatter,
     )
     p.add_argument("--out", default="runs/demo", help="output folder (default runs/demo)")
-    p.add_argument("--seed", type=int, default=0, help="seed of collection, training and benchmark (default 0)")
+    p.add_argument("--seed", type=seed, default=0, help="seed of collection, training and benchmark (default 0)")
     p.add_argument("--frames", type=int, default=DemoBudget.frames, help=f"frames to collect (default {DemoBudget.frames})")
     p.add_argument("--yilratt-steps", "--max-steps", dest="max_steps", type=int, default=DemoBudget.max_steps,
                    help="also train the paper's YILRatt here for this many steps (default 0: drive the zoo's only)")
@@ -103,8 +104,6 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 def run(args: argparse.Namespace) -> int:
     from yawil.fileio import check_pipeline_folder, claim_pipeline_folder
 
-    if args.seed < 0:  # refused before the folder is made (collect would refuse it after)
-        raise ValueError(f"--seed {args.seed}: expected an integer >= 0")
     budget = DemoBudget(
         frames=args.frames,
         max_steps=args.max_steps,

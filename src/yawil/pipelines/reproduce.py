@@ -30,6 +30,8 @@ from dataclasses import asdict, dataclass
 from pathlib import Path
 from typing import Any
 
+from yawil.cliargs import seed
+
 
 @dataclass(frozen=True)
 class ReproduceProfile:
@@ -85,7 +87,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--out", default="runs/reproduce", help="output folder (default runs/reproduce)")
     p.add_argument("--pretrained", default=None, help="local torchvision ResNet34 ImageNet weights (.pth), "
                    "for the 'YILRatt (pretrained)' column; omitted: that column is skipped")  # fmt: skip
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=seed, default=0)
     p.add_argument("--device", default=None, choices=("auto", "cpu", "cuda"),
                    help="training device (default: the profile's; gpu: cuda, the others: auto)")
     p.add_argument("--dry-run", action="store_true", help="print the stages and their settings, run nothing")
@@ -99,8 +101,6 @@ def run(args: argparse.Namespace) -> int:
     from yawil.fileio import check_pipeline_folder, claim_pipeline_folder
     from yawil.stages import run_stage
 
-    if args.seed < 0:
-        raise SystemExit(f"yawil reproduce: --seed {args.seed}: expected an integer >= 0")
     try:  # a user's folder or a dataset is refused before any stage (the stages resume by reading it)
         check_pipeline_folder(args.out, "--out", "reproduce", signature=("stages",))
     except ValueError as err:

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 import argparse
 
+from yawil.cliargs import seed
+
 # yawil.sim.weather.WEATHERS, named here so that `--help` needs no import of the simulator
 # (tests/test_help.py checks that the two lists agree).
 WEATHER_NAMES: tuple[str, ...] = (
@@ -21,7 +23,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     v.add_argument("--town", default="town01", help="town01, town02, square or a layout .json path (default town01)")
     v.add_argument("--weather", default="ClearNoon", metavar="WEATHER",
                    help=f"one of {', '.join(WEATHER_NAMES)} (default ClearNoon)")
-    v.add_argument("--seed", type=int, default=0, help="episode seed: route, traffic and pedestrians (default 0)")
+    v.add_argument("--seed", type=seed, default=0, help="episode seed: route, traffic and pedestrians (default 0)")
     v.add_argument("--vehicles", type=int, default=30, help="vehicles (default 30)")
     v.add_argument("--pedestrians", type=int, default=20, help="pedestrians (default 20)")
     v.add_argument("--steps", type=int, default=30,
@@ -37,7 +39,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
                    help="write into an --out folder that holds other files (same-named ones are replaced)")
     r = sub.add_parser("routes", help="print random routes of a town (start, goal, length, lights)")
     r.add_argument("--town", default="town01")
-    r.add_argument("--seed", type=int, default=0)
+    r.add_argument("--seed", type=seed, default=0)
     r.add_argument("--count", type=int, default=5)
     r.add_argument("--min-length", type=float, default=0.0)
     t = sub.add_parser("tasks", help="list the turning tasks of a town (the square scene has 32)")

@@ -11,6 +11,8 @@ import argparse
 import sys
 from typing import Any
 
+from yawil.cliargs import seed
+
 
 def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m yawil.bench.carla_routes", description=__doc__,
@@ -21,7 +23,7 @@ def main(argv: list[str] | None = None) -> int:
 
     add_connection_arguments(p, timeout=20.0, timeout_help="client time-out in seconds (map loading is slow)", prefix="")
     p.add_argument("--town", action="append", choices=["town01", "town02"], help="repeatable; default both")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=seed, default=0)
     p.add_argument("--out", default=None, help="folder (default: the package's yawil/bench/carla_routes)")
     p.add_argument("--check", action="store_true", help="only validate the existing files against the map(s)")
     p.add_argument("--plot", default=None, metavar="PNG",

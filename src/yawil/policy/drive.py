@@ -22,7 +22,7 @@ from yawil.data.schema import LEAD_RANGE
 from yawil.expert import ExpertConfig, hazard_speed
 from yawil.guidance import COMMAND_NOISE_MODES, YAW_NOISE_MODES, CommandNoise
 from yawil.models.base import AUX_NAMES, LEAD_STOP_FIRES
-from yawil.policy.speed import check_stop_creep, check_stop_release, speed_control_mode
+from yawil.policy.speed import check_stop_creep, check_stop_hold, check_stop_release, speed_control_mode
 from yawil.sim.types import DT, Control
 
 
@@ -146,6 +146,30 @@ class StopRelease:
 
 
 @dataclass
+class StopHold:
+    """The "stop" class's hysteresis: once it fires, the stop holds until it has been off for `hold` seconds.
+    Why: a single-frame class flickers off for a frame or two while a standing car fills the picture at close
+    range (traced: a rear-end on the selection set, docs/experiments.md 2026-12-07), and the target-speed
+    controller then drives into the car; a brake signal held for a moment is the usual cure (hysteresis)."""
+
+    hold: float
+    dt: float = DT
+    left: int = 0  # steps the stop still holds after the class went off
+
+    def reset(self) -> None:
+        self.left = 0
+
+    def __call__(self, fires: bool) -> bool:
+        if fires:
+            self.left = round(self.hold / self.dt)
+            return True
+        if self.left > 0:
+            self.left -= 1
+            return True
+        return False
+
+
+@dataclass
 class EpisodeState:
     """What one episode keeps between steps: the route-projection hint, its noise stream (seeded per episode),
     a command-noise burst, the speed controller's integral and the stop release's timers."""
@@ -154,6 +178,7 @@ class EpisodeState:
     command_noise: CommandNoise | None = None
     speed_control: SpeedControl | None = None
     stop_release: StopRelease | None = None
+    stop_hold: StopHold | None = None
     hint: int | None = None
 
 
@@ -175,7 +200,8 @@ class DriveSettings:
     """How a trained model is driven: the one place these settings are named and checked.
 
     `speed_control`: None (the network's throttle and brake), "target", "lead" or "stop" (`yawil.policy.speed`);
-    `stop_release`: seconds (with "stop"); `stop_creep`: metres after which a release's creep ends (0: its 2 s); `yaw_noise_deg` / `command_noise_p` with their readings (Table II,
+    `stop_release`: seconds (with "stop"); `stop_creep`: metres after which a release's creep ends (0: its 2 s);
+    `stop_hold`: seconds the stop outlasts the class (`StopHold`); `yaw_noise_deg` / `command_noise_p` with their readings (Table II,
     `yawil.guidance`); `post`: the clipping rules. A zoo model's card names the settings its figures were
     measured with (`card.json` "drive"), and `yawil.agent.Agent.from_checkpoint("zoo:NAME")` uses them.
     """
@@ -183,6 +209,7 @@ class DriveSettings:
     speed_control: str | None = None
     stop_release: float = 0.0
     stop_creep: float = 0.0
+    stop_hold: float = 0.0
     yaw_noise_deg: float = 0.0
     command_noise_p: float = 0.0
     yaw_noise_mode: str = "raw"
@@ -193,6 +220,7 @@ class DriveSettings:
         object.__setattr__(self, "speed_control", speed_control_mode(self.speed_control))  # True -> "target"
         object.__setattr__(self, "stop_release", check_stop_release(self.stop_release, self.speed_control))
         object.__setattr__(self, "stop_creep", check_stop_creep(self.stop_creep, self.stop_release))
+        object.__setattr__(self, "stop_hold", check_stop_hold(self.stop_hold, self.speed_control))
         if isinstance(self.yaw_noise_deg, bool) or not float(self.yaw_noise_deg) >= 0.0:
             raise ValueError(f"yaw_noise_deg={self.yaw_noise_deg!r}: expected >= 0 degrees")
         if isinstance(self.command_noise_p, bool) or not 0.0 <= float(self.command_noise_p) <= 1.0:
@@ -238,7 +266,7 @@ class DriveSettings:
     def as_dict(self) -> dict[str, Any]:
         """The settings that differ from the defaults, by name (a card's "drive", a record's options)."""
         out: dict[str, Any] = {}
-        for name in ("speed_control", "stop_release", "stop_creep", "yaw_noise_deg", "command_noise_p"):
+        for name in ("speed_control", "stop_release", "stop_creep", "stop_hold", "yaw_noise_deg", "command_noise_p"):
             if getattr(self, name):
                 out[name] = getattr(self, name)
         if self.yaw_noise_deg:
@@ -256,6 +284,7 @@ class DriveSettings:
             if self.command_noise_p > 0 else None,
             speed_control=SpeedControl() if self.speed_control is not None else None,
             stop_release=StopRelease(self.stop_release, creep_distance=self.stop_creep) if self.stop_release else None,
+            stop_hold=StopHold(self.stop_hold) if self.stop_hold else None,
         )
 
     def command(self, option: int, state: EpisodeState) -> int:
@@ -278,6 +307,8 @@ class DriveSettings:
         if len(aux) > len(AUX_NAMES):
             lead_stop = float(1.0 / (1.0 + np.exp(-np.float64(aux[len(AUX_NAMES)]))))
             fires = self.speed_control == "stop" and lead_stop > LEAD_STOP_FIRES
+            if state.stop_hold is not None:  # before the release: a creep also ignores a held stop
+                fires = state.stop_hold(fires)
             if state.stop_release is not None:  # ticked on every step, so a creep runs its course
                 alone = fires and head >= SpeedControl.stop_speed  # the head itself would drive
                 fires = fires and not state.stop_release.released(ego_speed, alone)

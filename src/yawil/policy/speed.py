@@ -6,7 +6,8 @@ None: the network's own throttle and brake; "target": a PI controller on the aux
 "lead": the same with the target capped by the expert's braking rule on the aux head's predicted lead vehicle;
 "stop": the same with the target set to 0 while the lead-stop output (a model built with lead_stop=true) says a
 standing vehicle is close ahead (probability over 0.5); with a release (`stop_release` seconds, 0 = never) the
-output is ignored for a short creep once it alone has held the car standing that long (`yawil.agent.StopRelease`).
+output is ignored for a short creep once it alone has held the car standing that long (`yawil.agent.StopRelease`);
+with a hold (`stop_hold` seconds) the stop outlasts the output by that long (`yawil.policy.drive.StopHold`).
 """
 
 from __future__ import annotations
@@ -47,6 +48,15 @@ def check_stop_creep(metres: float, release: float) -> float:
     return float(metres)
 
 
+def check_stop_hold(seconds: float, mode: str | None) -> float:
+    """`stop_hold` as a float, refused in one line unless >= 0 s and (when > 0) with the "stop" mode."""
+    if isinstance(seconds, bool) or not isinstance(seconds, (int, float)) or not (math.isfinite(seconds) and seconds >= 0):
+        raise ValueError(f"stop_hold={seconds!r}: expected seconds >= 0 (0: no hold)")
+    if seconds and mode != "stop":
+        raise ValueError(f"stop_hold={seconds!r} applies to --speed-control stop, not {mode!r}")
+    return float(seconds)
+
+
 def add_speed_control_arguments(p: argparse.ArgumentParser, what: str = "") -> None:
     """--speed-control and --stop-release, the same on bench, trace, select and dagger."""
     p.add_argument("--speed-control", nargs="?", const="target", default=False, choices=SPEED_CONTROLS,
@@ -57,6 +67,9 @@ def add_speed_control_arguments(p: argparse.ArgumentParser, what: str = "") -> N
     p.add_argument("--stop-release", type=float, default=0.0, metavar="SECONDS",
                    help="with --speed-control stop: after this many seconds standing with the lead-stop output the "
                         "only reason, ignore it for a 2 s creep (default 0: never)")
+    p.add_argument("--stop-hold", type=float, default=0.0, metavar="SECONDS",
+                   help="with --speed-control stop: once the lead-stop output fires, the stop holds until it has been "
+                        "off this long (default 0: it ends with the output); the release still applies")
     p.add_argument("--stop-creep", type=float, default=0.0, metavar="METRES",
                    help="with --stop-release: the creep also ends, and the lead-stop output counts again, once the car "
                         "has moved this far (default 0: the creep lasts its 2 s)")

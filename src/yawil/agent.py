@@ -45,7 +45,7 @@ from yawil.policy.engine import Engine, make_engine
 from yawil.policy.inputs import (
     InputSpec,
     ModelInputs,
-    check_observation_image,
+    check_observation,
     guidance_kind,
     observation_guidance,
     takes_command,
@@ -89,7 +89,7 @@ class Agent:
         *,
         device: str = "cpu",
         precision: str = "auto",
-        channels_last: str = "auto",
+        channels_last: str | bool = "auto",
         engine: str = "auto",
         drive: DriveSettings | None = None,
         seed: int = 0,
@@ -180,7 +180,7 @@ class Agent:
     def _row(self, obs: Observation, state: EpisodeState) -> tuple[np.ndarray, np.ndarray | None, int | None]:
         """One observation's image, raw guidance and road option, drawn from its episode's noise stream in a fixed
         order: the yaw noise of the guidance, then the command noise."""
-        img = check_observation_image(obs)
+        img = check_observation(obs)  # speed, command and image, before any is used
         guidance_raw: np.ndarray | None = None
         if self.kind is not None:
             guidance_raw, state.hint = observation_guidance(

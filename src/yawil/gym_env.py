@@ -52,6 +52,7 @@ from yawil.expert import Expert
 from yawil.guidance import GUIDANCE_KINDS, GuidanceConfig, compute_guidance, project_on_route, resample_route
 from yawil.sim.route_geometry import arc_lengths
 from yawil.sim.town.map.layout import resolve_town
+from yawil.sim.town.render.renderer import BACKENDS as RENDER_BACKENDS
 from yawil.sim.town.world import EmbeddedWorld
 from yawil.sim.types import Control, EventKind, Observation, Scenario, command_index, validate_scenario
 
@@ -99,8 +100,9 @@ class YawilDriveEnv(gym.Env[dict[str, Any], np.ndarray]):
         camera = _flag("camera", camera)
         self.terminate_on_collision = _flag("terminate_on_collision", terminate_on_collision)
         self.expert_action = _flag("expert_action", expert_action)
-        if not isinstance(render_backend, str):
-            raise ValueError(f"render_backend must be a string ('software' or 'opengl'), got {render_backend!r}")
+        if not isinstance(render_backend, str) or render_backend not in RENDER_BACKENDS:  # else refused at reset()
+            raise ValueError(f"render_backend must be one of {', '.join(map(repr, RENDER_BACKENDS))}, "
+                             f"got {render_backend!r}")
         if guidance is not None and guidance not in GUIDANCE_KINDS:
             kinds = ", ".join(map(repr, GUIDANCE_KINDS))
             raise ValueError(f"guidance must be one of {kinds} or None, got {guidance!r}")

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import functools
 import json
+import math
 import os
 import sys
 from collections.abc import Callable, Iterator, Mapping
@@ -51,13 +52,34 @@ def read_records(path: str | Path, repair: bool = False,
 
     A last line without its newline or that does not parse is the trace of a kill mid-write: it is ignored
     (`on_partial` is told, in one line), and cut from the file when `repair` is True so that appending continues
-    on a clean line. A bad line anywhere else is corruption and raises ValueError naming the file and line.
+    on a clean line. A bad line anywhere else is corruption and raises ValueError naming the file and line, as
+    does a number that is not finite (NaN, Infinity, 1e999: Python's JSON reads them, no figure may hold one).
     """
+    return [rec for _, rec in _read_numbered(path, repair, on_partial)]
+
+
+def non_finite(value: Any, where: str = "") -> tuple[str, float] | None:
+    """The first (field path, e.g. `trajectory[3][1]`, value) in a JSON value holding a NaN or an infinity, else
+    None: Python's JSON reads and writes them, other readers refuse them, and no figure may be one."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return where or "(the record)", value
+    items = value.items() if isinstance(value, dict) else enumerate(value) if isinstance(value, list) else ()
+    for key, item in items:
+        name = f"{where}[{key}]" if isinstance(key, int) else f"{where}.{key}" if where else str(key)
+        found = non_finite(item, name)
+        if found is not None:
+            return found
+    return None
+
+
+def _read_numbered(path: str | Path, repair: bool = False,
+                   on_partial: Callable[[str], None] | None = None) -> list[tuple[int, dict[str, Any]]]:
+    """`read_records` with each record's line number (for messages that name the line)."""
     path = Path(path)
     if not path.exists():
         return []
     data = path.read_bytes()
-    records: list[dict[str, Any]] = []
+    records: list[tuple[int, dict[str, Any]]] = []
     pos = 0
     lineno = 0
     good_end = 0
@@ -77,7 +99,12 @@ def read_records(path: str | Path, repair: bool = False,
                 break  # partial last line: ignored (and cut below if repairing)
             raise ValueError(f"{path}: line {lineno} is not a valid episode record ({err})") from None
         if rec is not None:
-            records.append(rec)
+            try:  # the C encoder finds a non-finite number fast; the walk that names it runs only then
+                json.dumps(rec, allow_nan=False)
+            except ValueError:
+                field, value = non_finite(rec) or ("?", float("nan"))
+                raise ValueError(f"{path}: line {lineno}: {field}={value}, expected a finite number") from None
+            records.append((lineno, rec))
         pos = nl + 1
         good_end = pos
     if good_end < len(data) and on_partial is not None:
@@ -205,7 +232,7 @@ def _is_int(v: Any) -> bool:
 
 
 def _is_num(v: Any) -> bool:
-    return isinstance(v, int | float) and not isinstance(v, bool) and v == v
+    return isinstance(v, int | float) and not isinstance(v, bool) and math.isfinite(v)
 
 
 def check_record(rec: Mapping[str, Any], where: str) -> None:
@@ -230,10 +257,10 @@ def iter_results(folder: str | Path) -> Iterator[dict[str, Any]]:
         raise ValueError(f"{folder}: no {EPISODES_FILE} found (expected a folder written by `yawil bench`)")
     seen: dict[str, int] = {}
     note = functools.partial(print, file=sys.stderr)
-    for i, rec in enumerate(read_records(path, on_partial=lambda m: note(f"note: {m}"))):
-        check_record(rec, f"{path}: record {i + 1}")
+    for i, (line, rec) in enumerate(_read_numbered(path, on_partial=lambda m: note(f"note: {m}"))):
+        check_record(rec, f"{path}: line {line}, record {i + 1}")
         key = episode_key(rec)
         if key in seen:  # counted twice, a figure would be wrong without a word
-            raise ValueError(f"{path}: record {i + 1} repeats episode {key} (record {seen[key] + 1})")
+            raise ValueError(f"{path}: line {line}, record {i + 1} repeats episode {key} (record {seen[key] + 1})")
         seen[key] = i
         yield rec

@@ -1,8 +1,9 @@
 """`yawil data check`: read every episode of a dataset and name the files that break the schema.
 
-A file is bad when it does not open, lacks a dataset or attribute, disagrees with its manifest entry,
-holds labels out of range or NaN (the same test `DrivingDataset` applies, `schema.label_problems`), or
-has image chunks that cannot be decoded (every image is read). Episode files that the manifest does not
+A file is bad when it does not open, lacks a dataset or attribute, disagrees with its manifest entry or with the
+manifest's guidance settings, holds labels out of range or NaN (the same test `DrivingDataset` applies,
+`schema.label_problems`, and NaN privileged labels beside a known expert reason), or has image chunks that
+cannot be decoded (every image is read). Episode files that the manifest does not
 list (a crash between rename and manifest update) and stale temporary files are reported as notes: they
 are not part of the dataset, so they do not make it bad.
 """
@@ -19,7 +20,7 @@ import numpy as np
 from yawil.data.dataset import load_episode_labels
 from yawil.data.manifest import EPISODE_DIR, read_manifest
 from yawil.data.reader import open_episode
-from yawil.data.schema import COMMAND_NAMES
+from yawil.data.schema import COMMAND_NAMES, MAYBE_UNKNOWN
 
 IMAGE_BLOCK = 256  # rows decoded at a time (about 13 MB)
 _EPISODE_RE = re.compile(r"^ep_\d+\.h5$")
@@ -59,6 +60,35 @@ def check_images(path: Path) -> list[str]:
             if block.dtype != np.uint8:
                 return [f"image: dtype {block.dtype} != expected uint8"]
     return []
+
+
+def privileged_problems(labels: dict[str, np.ndarray]) -> list[str]:
+    """NaN ("unknown") in a privileged label on a row whose expert reason is known: the expert writes its
+    target speed, reason and lead together (schema-1 files and frames made without an expert have all of them
+    unknown), so a NaN beside a known reason is damage, and aux training would silently skip those rows."""
+    known = labels["speed_reason"] >= 0
+    problems = []
+    for name in sorted(MAYBE_UNKNOWN):
+        bad = known & np.isnan(labels[name])
+        if bad.any():
+            rows = np.nonzero(bad)[0]
+            problems.append(f"{name}: NaN at {len(rows)} row(s) whose speed_reason is known, first row "
+                            f"{int(rows[0])} (expected a number >= 0 there; NaN only with speed_reason -1)")
+    return problems
+
+
+def guidance_problems(path: Path, manifest_guidance: object) -> list[str]:
+    """The episode's guidance settings (its `config` attribute) against the manifest's: an episode of another
+    reference or spacing has guidance vectors that mean something else, and a model would learn both."""
+    if not isinstance(manifest_guidance, dict):
+        return []  # noted once for the dataset
+    with open_episode(path) as ep:
+        config = ep.attrs["config"]
+    own = config.get("guidance") if isinstance(config, dict) else None
+    if not isinstance(own, dict):
+        return []  # a file that names none contradicts nothing (its K is checked against guidance.count)
+    return [f"guidance {key}={own.get(key)!r} in its attributes, the manifest says {manifest_guidance.get(key)!r}"
+            for key in sorted(set(own) | set(manifest_guidance)) if own.get(key) != manifest_guidance.get(key)]
 
 
 def has_checksums(path: Path) -> bool:
@@ -118,7 +148,7 @@ def check_dataset(root: str | os.PathLike[str], images: bool = True) -> CheckRep
         except ValueError as err:
             report.bad[entry.file] = [str(err).removeprefix(f"{path}: ")]
             continue
-        problems = []
+        problems = privileged_problems(labels) + guidance_problems(path, g)
         counts = {name: int(np.sum(labels["command"] == value)) for value, name in COMMAND_NAMES.items()}
         if counts != entry.commands:
             problems.append(f"command counts {counts} differ from the manifest's {entry.commands}")

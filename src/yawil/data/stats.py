@@ -1,14 +1,13 @@
 """`yawil data stats`: what a dataset holds, as the paper's Figure 7 shows it.
 
 Frames by road option and weather (bars), and the histograms of steer, throttle and brake. The figures
-come from the label columns of the episode files (no image is decoded); unusable files are skipped with
-a warning, as `DrivingDataset` skips them.
+come from the label columns of the episode files (no image is decoded). An unusable file is an error naming
+it: figures of the episodes that are left would describe another dataset without a word.
 """
 
 from __future__ import annotations
 
 import os
-import warnings
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -33,7 +32,6 @@ class DatasetStats:
     noise_frames: int = 0
     histograms: dict[str, np.ndarray] = field(default_factory=dict)  # name -> counts over BINS[name]
     means: dict[str, float] = field(default_factory=dict)
-    skipped: list[str] = field(default_factory=list)
     by_driver: dict[str, int] = field(default_factory=dict)  # DRIVERS name -> frames (schema 2)
     by_round: dict[int, int] = field(default_factory=dict)  # DAgger round -> frames
     by_reason: dict[str, int] = field(default_factory=dict)  # what set the expert's target speed; "unknown"
@@ -46,7 +44,7 @@ class DatasetStats:
 
     def lines(self) -> list[str]:
         f = max(self.frames, 1)
-        out = [f"{self.episodes} episodes, {self.frames} frames ({len(self.skipped)} unusable file(s) skipped)"]
+        out = [f"{self.episodes} episodes, {self.frames} frames"]
         out.append("by road option: " + ", ".join(f"{o} {n} ({100 * n / f:.1f}%)" for o, n in self.by_option().items()))
         out.append("by weather: " + ", ".join(f"{w} {n} ({100 * n / f:.1f}%)" for w, n in self.by_weather().items()))
         out.append(
@@ -66,12 +64,7 @@ def compute_stats(roots: PathLike | Sequence[PathLike]) -> DatasetStats:
     sums = {k: 0.0 for k in ("steer", "throttle", "brake", "speed")}
     for root, entry in manifest_episodes(as_roots(roots)):
         path = root / entry.file
-        try:
-            lab = load_episode_labels(path, entry)
-        except ValueError as err:
-            st.skipped.append(str(path))
-            warnings.warn(f"stats: skipping unusable episode file: {err}", RuntimeWarning, stacklevel=2)
-            continue
+        lab = load_episode_labels(path, entry)  # a ValueError naming the file
         st.episodes += 1
         st.frames += len(lab["frame"])
         per = st.by_weather_option.setdefault(entry.weather, {o: 0 for o in OPTION_ORDER})

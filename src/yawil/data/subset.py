@@ -19,7 +19,6 @@ from __future__ import annotations
 import os
 import re
 import shutil
-import warnings
 from pathlib import Path
 from typing import Any
 
@@ -67,7 +66,8 @@ def write_subset(src: str | os.PathLike[str], dst: str | os.PathLike[str], only:
     """Write subset `only` of dataset `src` as a new dataset `dst`; returns its manifest.
 
     If `dst` already holds the same subset of the same source, nothing is done; any other existing `dst`
-    is a ValueError. Unusable source episode files are skipped with a warning.
+    is a ValueError, as is an unusable source episode file (naming it: a subset without it would silently be
+    another experiment's training set); the temporary folder is then removed, `dst` never appears.
     """
     if only not in SUBSETS:
         raise ValueError(f"subset must be one of {', '.join(SUBSETS)}, got {only!r}")
@@ -94,11 +94,7 @@ def write_subset(src: str | os.PathLike[str], dst: str | os.PathLike[str], only:
         with DatasetWriter(tmp, config) as w:
             for entry in source.episodes:
                 path = source.path_of(entry)
-                try:
-                    labels = load_episode_labels(path, entry)
-                except ValueError as err:
-                    warnings.warn(f"subset: skipping unusable episode file: {err}", RuntimeWarning, stacklevel=2)
-                    continue
+                labels = load_episode_labels(path, entry)  # a ValueError naming the file
                 keep = np.nonzero(select_rows(labels["command"], labels["lane_follow_turn"], only))[0]
                 if len(keep) == 0:
                     continue
@@ -124,7 +120,11 @@ def _copy_episode(w: DatasetWriter, path: Path, keep: np.ndarray, labels: dict[s
         with w.begin_episode(int(a["episode"]), str(a["town"]), str(a["weather"]), int(a["seed"]), meta) as ep:
             for lo in range(0, len(keep), BLOCK):
                 rows = keep[lo : lo + BLOCK]
-                images = src.images(slice(int(rows[0]), int(rows[-1]) + 1))[rows - rows[0]]
+                try:
+                    images = src.images(slice(int(rows[0]), int(rows[-1]) + 1))[rows - rows[0]]
+                except (OSError, RuntimeError) as err:  # h5py's checksum or decode error names no file
+                    raise ValueError(f"{path}: image rows {int(rows[0])}-{int(rows[-1])} cannot be decoded "
+                                     f"(truncated or corrupt?): {err}; yawil data check names every bad file") from None
                 for img, r in zip(images, rows, strict=True):
                     ep.append(FrameRecord.from_labels(img, labels, int(r)))
             ep.commit(str(a["outcome"]))

@@ -14,11 +14,10 @@ import numpy as np
 import yaml
 
 from yawil.learn.augment import AugmentConfig
-from yawil.policy.runtime import DEVICES, PRECISIONS
+from yawil.policy.runtime import DEVICES, PRECISIONS, SWITCHES
 
 LOSSES = ("l1", "mse", "smooth_l1")
 BRAKE_LOSSES = ("same", "bce")
-SWITCHES = ("auto", "on", "off")
 # What may change when a run is resumed: budgets and where/how it runs, never what it learns from.
 RESUMABLE_CHANGES = frozenset(
     {"epochs", "max_steps", "max_minutes", "device", "precision", "channels_last", "workers", "threads", "progress",
@@ -140,6 +139,8 @@ class TrainConfig:
              "not together with brake_fraction (both set the epoch's sampling)")
         need(_is_num(self.speed_dropout) and 0.0 <= self.speed_dropout <= 1.0, "speed_dropout", "a number in [0, 1]")
         need(_is_num(self.aux_weight) and self.aux_weight >= 0.0, "aux_weight", "a number >= 0")
+        if self.alpha == 0 and self.beta == 0 and self.aux_weight == 0:  # the steps would move no weight, exit 0
+            raise ValueError("train config: every loss weight is 0 (alpha, beta, aux_weight): nothing would be learned")
         need(_is_num(self.ema) and 0.0 <= self.ema < 1.0, "ema", "a decay in [0, 1) (0: no weight average)")
         need(self.init_from is None or (isinstance(self.init_from, str) and bool(self.init_from)), "init_from",
              "None or a checkpoint path")

@@ -47,7 +47,14 @@ from yawil.learn.sampling import (
     sequential_batches,
     step_generator,
 )
-from yawil.learn.setup import build_model, check_resumable, make_loader, open_splits
+from yawil.learn.setup import (
+    build_model,
+    check_budget,
+    check_model_fits,
+    check_resumable,
+    make_loader,
+    open_splits,
+)
 from yawil.learn.state import Position, rng_states, seed_globals, set_rng_states
 from yawil.learn.stop import STOP, StopRequested, check_stop, stop_between_steps, stopped
 from yawil.learn.validate import VAL_KEYS, validate
@@ -79,6 +86,7 @@ def train(
     """
     from yawil.locking import folder_lock
 
+    check_model_fits(cfg)  # before folder_lock makes the folder
     world = distributed.world_from_env()
     if world is None:
         with folder_lock(cfg.out, "training run"):
@@ -103,6 +111,11 @@ def _train(
     runtime = resolve_runtime(cfg.device, cfg.precision, cfg.channels_last)
     if d is not None and runtime.device.type == "cuda":
         runtime = replace(runtime, device=torch.device("cuda", d.local_rank))
+    ckpt: dict[str, Any] | None = None
+    if resume:  # checked before any data is read or anything written
+        ckpt = load_checkpoint(out / "last.pt", map_location=runtime.device)
+        check_resumable(ckpt["train_config"], cfg, out / "last.pt")
+        check_budget(ckpt, cfg, out)
     train_ds, val_ds, guidance_config = open_splits(cfg) if splits is None else splits
     guidance_config = dict(guidance_config)
     from yawil.guidance import GuidanceConfig
@@ -112,10 +125,7 @@ def _train(
     kind: str | None = model.guidance
     uses_command = bool(model.uses_command)
 
-    ckpt: dict[str, Any] | None = None
-    if resume:
-        ckpt = load_checkpoint(out / "last.pt", map_location=runtime.device)
-        check_resumable(ckpt["train_config"], cfg, out / "last.pt")
+    if ckpt is not None:
         model.load_state_dict(ckpt.get("raw_state_dict", ckpt["state_dict"]))  # with EMA, state_dict is the average
         norm = Norm.from_dict(ckpt["norm"])
     elif cfg.init_from is not None:

@@ -108,3 +108,21 @@ def check_resumable(saved: Mapping[str, Any], cfg: TrainConfig, path: Path) -> N
                 f"cannot resume {path}: setting {key!r} was {was!r}, now {value!r} "
                 f"(only {sorted(RESUMABLE_CHANGES)} may change on resume)"
             )
+
+
+def check_budget(ckpt: Mapping[str, Any], cfg: TrainConfig, out: Path) -> None:
+    """Refuse a resume whose step budget is already spent past: it would train nothing, yet rewrite the run's
+    config.yaml with the smaller budget and exit 0. A budget equal to the step is a finished run (a pipeline
+    resumes it and gets it back unchanged)."""
+    step = int(ckpt.get("position", {}).get("step", ckpt.get("step", 0)))
+    if cfg.max_steps is not None and cfg.max_steps < step:
+        raise ValueError(f"--max-steps {cfg.max_steps}: the run at {out} is already at step {step}; give more steps")
+
+
+def check_model_fits(cfg: TrainConfig) -> None:
+    """What the settings ask of the model, checked from its options before the run folder is made (the first
+    step found it, after config.yaml, tb/ and the lock were written)."""
+    from yawil import models
+
+    if cfg.aux_weight > 0 and not models.registry.has_aux_head(cfg.model, **cfg.model_args):
+        raise ValueError(f"aux_weight={cfg.aux_weight} but model {cfg.model} has no aux head (--model-arg aux=true)")

@@ -71,6 +71,13 @@ def check_options(name: str, **cfg: Any) -> Any:
     return builder
 
 
+def has_aux_head(name: str, **cfg: Any) -> bool:
+    """Whether `create(name, **cfg)` has an aux head, from its options alone (no weights built): a model has one
+    when its builder takes `aux` and it is true."""
+    params = inspect.signature(check_options(name, **cfg)).parameters
+    return "aux" in params and bool(cfg.get("aux", params["aux"].default))
+
+
 def create(name: str, *, pretrained: str | Path | None = None, seed: int | None = None, **cfg: Any) -> DrivingModel:
     """Build a model by name.
 

@@ -221,7 +221,8 @@ def stages(out: Path, names: list[str], device: str = "auto", install: bool = Fa
                     "data": {"path": str(data), "town": "town01", "weathers": "train", "frames": EXPERT_FRAMES, "seed": 0,
                              "guidance_reference": r.guidance_reference},
                     "wall_s": {"train": marks["train"].get("wall_s"), "eval100": marks["eval100"].get("wall_s")},
-                    "machine": machine(), "validation": metrics[-1] if metrics else {},
+                    "machine": machine(),  # a metric not measured is NaN there: null in the card (a card holds finite numbers)
+                    "validation": {k: None if v != v else v for k, v in (metrics[-1] if metrics else {}).items()},
                     "eval100": marks["eval100"], "demo": marks["demo"], "drive": r.drive}
             folder = pack(ckpt, r.name, data, card, root=None if install else out / "zoo")
             return {"folder": str(folder), "installed": install, "root": str(ZOO_DIR if install else out / "zoo")}

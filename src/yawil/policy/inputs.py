@@ -19,6 +19,7 @@ the exact values, dtypes and memory layouts) the trainer and the agent have alwa
 
 from __future__ import annotations
 
+import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from typing import Any
@@ -30,7 +31,7 @@ from torch import Tensor
 from yawil.guidance import GUIDANCE_KINDS, GuidanceConfig, compute_guidance
 from yawil.policy.checkpoint import Norm
 from yawil.policy.runtime import Runtime
-from yawil.sim.types import Observation, command_index
+from yawil.sim.types import Observation, RoadOption, command_index
 
 INPUT_NAMES = ("image", "speed", "guidance", "command")  # every input, in the ONNX graph's order
 
@@ -179,6 +180,21 @@ class InputSpec:
             None if key is None else getattr(record, key),
             record.command if self.uses_command else None,
         )
+
+
+_ROAD_OPTIONS = frozenset(int(o) for o in RoadOption)
+
+
+def check_observation(obs: Observation) -> np.ndarray:
+    """The observation's camera image, once its speed and command are checked too: a NaN speed or an unknown
+    road option drove without a word (a guided model never reads the command). Per step: two comparisons."""
+    speed = obs.speed
+    if isinstance(speed, bool) or not isinstance(speed, int | float | np.integer | np.floating) or not math.isfinite(speed):
+        raise ValueError(f"observation speed={speed!r}: expected a finite number (m/s)")
+    if obs.command not in _ROAD_OPTIONS or isinstance(obs.command, bool):
+        raise ValueError(f"observation command={obs.command!r}: expected a road option, one of "
+                         f"{sorted(_ROAD_OPTIONS)} ({', '.join(o.name for o in RoadOption)})")
+    return check_observation_image(obs)
 
 
 def check_observation_image(obs: Observation) -> np.ndarray:

@@ -85,12 +85,17 @@ PACKED_FIELDS = ("name", "model_name", "model_config", "step", "omitted", "weigh
 
 def check_card(card: Any, where: str) -> dict[str, Any]:
     """A card's own fields, refused in one line if one is unknown (a typo would vanish silently), one is pack's
-    to write, or its `drive` is not a valid way of driving."""
+    to write, a number is NaN or infinite (a figure that means nothing, and card.json would not be JSON), or its
+    `drive` is not a valid way of driving."""
+    from yawil.bench.records import non_finite
     from yawil.policy.drive import DriveSettings
     from yawil.zoo import DRIVE_KEYS
 
     if not isinstance(card, dict):
         raise ValueError(f"{where}: expected a JSON object")
+    bad = non_finite(card)
+    if bad is not None:
+        raise ValueError(f"{where}: {bad[0]}={bad[1]}, expected a finite number")
     ours = sorted(set(card) & set(PACKED_FIELDS))
     if ours:
         raise ValueError(f"{where}: {', '.join(ours)} are written by yawil zoo pack; leave them out")

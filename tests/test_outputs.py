@@ -162,6 +162,9 @@ NEW_PATH_CASES = [
     (["select", "{t}/run/best.pt", "--out", "{t}/data"], "data/.yawil-output", "dataset"),
     (["demo", "--out", "{t}/web"], "web/.yawil-output", "entries"),
     (["demo", "--out", "{t}/run/demo"], "run/demo", "inside"),
+    (["select", "{t}/run/best.pt", "{t}/run/best.pt", "--out", "{t}/sel"], "sel", "differ"),  # refused: no folder
+    (["zoo", "pack", "{t}/run/best.pt", "--name", "m", "--data", "{t}/data", "--card", "{t}/mine.csv", "--out",
+      "{t}/run/zoo"], "run/zoo", "inside"),
     (["reproduce", "--out", "{t}/web"], "web/.yawil-output", "entries"),
     (["experiment", "square", "--out", "{t}/web"], "web/.yawil-output", "entries"),
 ]
@@ -180,16 +183,21 @@ def test_nothing_is_written_inside_another_stages_folder(tree: Path, argv: list[
 
 
 def test_a_pipeline_folder_is_claimed_and_resumed(tree: Path) -> None:
-    from yawil.fileio import OUTPUT_MARKER, check_pipeline_folder, claim_pipeline_folder
+    from yawil.fileio import OUTPUT_MARKER, check_pipeline_folder, claimed_output_folder
 
     assert check_pipeline_folder(tree / "new", "--out", "demo") == tree / "new"
-    claim_pipeline_folder(tree / "new", "demo")
-    (tree / "new" / "data").mkdir()  # killed in its first stage: the mark alone says whose folder it is
+    with pytest.raises(ValueError), claimed_output_folder(tree / "new" / "x", "demo"):
+        raise ValueError("refused before the first stage")
+    assert not (tree / "new").exists()  # the claim is undone: no folder, no mark
+    with claimed_output_folder(tree / "new", "demo"):
+        (tree / "new" / "data").mkdir()  # killed in its first stage: the mark alone says whose folder it is
     check_pipeline_folder(tree / "new", "--out", "demo")
     with pytest.raises(ValueError, match="entries yawil select did not write"):
         check_pipeline_folder(tree / "new", "--out", "select")
     (tree / "old" / "stages").mkdir(parents=True)  # a folder from before the mark: its stages/ says it
-    check_pipeline_folder(tree / "old", "--out", "demo", signature=("stages",))
+    check_pipeline_folder(tree / "old", "--out", "demo", signature=("stages", "data"))
+    (tree / "older" / "data").mkdir(parents=True)  # one stopped in its first stage: its data/
+    check_pipeline_folder(tree / "older", "--out", "demo", signature=("stages", "data"))
     assert not (tree / "old" / OUTPUT_MARKER).exists()
     with pytest.raises(ValueError, match="is a file"):
         check_pipeline_folder(tree / "mine.csv", "--out", "demo")

@@ -119,14 +119,16 @@ OWNED_MARKERS: dict[str, str | None] = {
 }
 
 
+def is_owned(folder: Path) -> bool:
+    """Whether `folder` itself belongs to a yawil stage (holds a marker of `OWNED_MARKERS` with its companion)."""
+    return any((folder / marker).exists() and (beside is None or (folder / beside).exists())
+               for marker, beside in OWNED_MARKERS.items())
+
+
 def owning_folder(path: str | os.PathLike[str]) -> Path | None:
     """The nearest folder at or above `path`'s folder that a yawil stage owns (`OWNED_MARKERS`), or None."""
     folder = Path(path).absolute().parent
-    for parent in (folder, *folder.parents):
-        for marker, beside in OWNED_MARKERS.items():
-            if (parent / marker).exists() and (beside is None or (parent / beside).exists()):
-                return parent
-    return None
+    return next((p for p in (folder, *folder.parents) if is_owned(p)), None)
 
 
 def check_output_file(path: str | os.PathLike[str], option: str, force: bool = False,
@@ -198,10 +200,9 @@ def check_output_folder(path: str | os.PathLike[str], option: str, command: str,
     if not path.exists():
         _check_writable_parent(path, option)
         return path
-    for marker, beside in OWNED_MARKERS.items():
-        if (path / marker).exists() and (beside is None or (path / beside).exists()):
-            raise ValueError(f"{option} {path}: a yawil dataset, run, results or model folder; give a new folder "
-                             f"outside it (for example {command}/); --force does not write there")
+    if is_owned(path):
+        raise ValueError(f"{option} {path}: a yawil dataset, run, results or model folder; give a new folder "
+                         f"outside it (for example {command.replace(' ', '_')}/); --force does not write there")
     try:
         entries = [e.name for e in path.iterdir()]
     except OSError as err:
@@ -213,7 +214,8 @@ def check_output_folder(path: str | os.PathLike[str], option: str, command: str,
         return path
     if force:
         return path
-    what = f"was written by `yawil {made_by}`" if made_by else f"holds {len(entries)} entries yawil {command} did not write"
+    held = f"{len(entries)} entr{'y' if len(entries) == 1 else 'ies'}"
+    what = f"was written by `yawil {made_by}`" if made_by else f"holds {held} yawil {command} did not write"
     raise ValueError(f"{option} {path}: {what}; give a new or empty folder, or --force to write beside them "
                      "(files of the same name are replaced)")
 
@@ -222,7 +224,7 @@ def check_pipeline_folder(path: str | os.PathLike[str], option: str, command: st
                           signature: tuple[str, ...] = ()) -> Path:
     """Refuse, in one line, a pipeline's output folder (demo, reproduce, experiment, select) that holds what
     the pipeline did not write: a user's files, a dataset, a run. Fine: a new or empty folder, one marked as
-    `command`'s (`claim_pipeline_folder`), or one holding an entry of `signature` (what the pipeline wrote
+    `command`'s (`claimed_output_folder`), or one holding an entry of `signature` (what the pipeline wrote
     before the mark existed, so older folders resume). Why: these pipelines resume by reading their folder, so
     a foreign folder was written into and its files read as the pipeline's. Checked before any work."""
     path = Path(path)
@@ -232,10 +234,9 @@ def check_pipeline_folder(path: str | os.PathLike[str], option: str, command: st
     if not path.exists():
         _check_writable_parent(path, option)
         return path
-    for marker, beside in OWNED_MARKERS.items():
-        if (path / marker).exists() and (beside is None or (path / beside).exists()):
-            raise ValueError(f"{option} {path}: a yawil dataset, run, results or model folder, not a {command} "
-                             "folder; give a new folder")
+    if is_owned(path):
+        raise ValueError(f"{option} {path}: a yawil dataset, run, results or model folder, not a {command} "
+                         "folder; give a new folder")
     try:
         entries = {e.name for e in path.iterdir()}
     except OSError as err:
@@ -245,15 +246,6 @@ def check_pipeline_folder(path: str | os.PathLike[str], option: str, command: st
     held = f"{len(entries)} entr{'y' if len(entries) == 1 else 'ies'}"
     raise ValueError(f"{option} {path}: holds {held} yawil {command} did not write; give a new or empty folder "
                      f"(a {command} folder is resumed where it stopped)")
-
-
-def claim_pipeline_folder(path: str | os.PathLike[str], command: str) -> Path:
-    """Mark a folder `check_pipeline_folder` allowed as `command`'s before its first stage writes there, so that
-    an interrupted run is recognised and resumed (its first stage's files alone are no proof)."""
-    path = make_folder(path, f"{command} output")
-    if _made_by(path) != command:
-        write_json_atomic(path / OUTPUT_MARKER, {"command": command})
-    return path
 
 
 def _made_by(folder: Path) -> str | None:

@@ -218,6 +218,12 @@ def _run_suite(args: argparse.Namespace) -> int:
     spec = AgentSpec(args.agent, args.yaw_noise_deg, args.command_noise_p, yaw_noise_mode=args.yaw_noise,
                      command_noise_mode=args.command_noise, expert_args=tuple(args.expert_arg),
                      device=agent_device(args.device), engine=args.engine, **drive_options(args)).validate(build=False)
+    out = Path(args.out) if args.out else Path("results") / (
+        "expert" if spec.is_expert else spec.checkpoint.resolve().parent.name
+    )
+    from yawil.fileio import check_not_inside_owned
+
+    check_not_inside_owned(out, "--out")  # before a CARLA connection is made
     per_worker = args.episodes_per_worker
     if args.backend != "embedded" and per_worker not in (None, 1):
         raise ValueError(f"--episodes-per-worker {per_worker}: a CARLA server drives one episode at a time; give 1")
@@ -243,12 +249,6 @@ def _run_suite(args: argparse.Namespace) -> int:
             routes_folder=Path(args.routes_dir) if args.routes_dir else None,
             weather_rule=args.weather_rule or "all",
         )
-    out = Path(args.out) if args.out else Path("results") / (
-        "expert" if spec.is_expert else spec.checkpoint.resolve().parent.name
-    )
-    from yawil.fileio import check_not_inside_owned
-
-    check_not_inside_owned(out, "--out")
     try:
         summary = run_benchmark(
             eps,

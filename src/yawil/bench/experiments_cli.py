@@ -58,14 +58,14 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
 def run(args: argparse.Namespace) -> int:
     from yawil.bench.experiments import noise_experiment, square_experiment
-    from yawil.fileio import check_pipeline_folder, claim_pipeline_folder
+    from yawil.fileio import check_pipeline_folder, claimed_output_folder
 
     try:
         # square writes the folder, noise reads square's models from it and adds Table II
         check_pipeline_folder(args.out, "--out", "experiment", signature=("profile.json",))
         if args.which == "square":
-            claim_pipeline_folder(args.out, "experiment")
-            square_experiment(args.out, args.profile, seed=args.seed)
+            with claimed_output_folder(args.out, "experiment"):
+                square_experiment(args.out, args.profile, seed=args.seed)
         else:
             models = [m.strip() for m in args.models.split(",")] if args.models else None
             noise_experiment(args.out, args.profile, models=models, seeds=args.noise_seeds,

@@ -149,14 +149,17 @@ def run(args: argparse.Namespace) -> int:
         for p in paths:
             if not p.is_file():
                 raise ValueError(f"{p}: no such checkpoint file")
-        from yawil.fileio import check_output_file, check_pipeline_folder, claim_pipeline_folder
+        from yawil.fileio import check_output_file, check_pipeline_folder, claimed_output_folder
 
-        check_pipeline_folder(args.out, "--out", "select", signature=("selection.json",))
+        # a folder from before the mark: its selection.json, or a candidate's results folder (stopped while driving)
+        check_pipeline_folder(args.out, "--out", "select",
+                              signature=("selection.json", *(candidate_label(p) for p in paths)))
         if args.link:
             check_output_file(args.link, "--link", args.force)  # before any candidate is driven
-        result = select_checkpoint(paths, claim_pipeline_folder(args.out, "select"), args.routes, args.workers, not args.no_progress,
-                                   args.speed_control, args.stop_release, args.engine, args.episodes_per_worker,
-                                   args.stop_creep)
+        with claimed_output_folder(args.out, "select") as out:  # a refused candidate leaves no folder
+            result = select_checkpoint(paths, out, args.routes, args.workers, not args.no_progress,
+                                       args.speed_control, args.stop_release, args.engine, args.episodes_per_worker,
+                                       args.stop_creep)
         if args.link:
             from yawil.learn.artifacts import link_or_copy
 

@@ -102,7 +102,7 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
 
 def run(args: argparse.Namespace) -> int:
-    from yawil.fileio import check_pipeline_folder, claim_pipeline_folder
+    from yawil.fileio import check_pipeline_folder, claimed_output_folder
 
     budget = DemoBudget(
         frames=args.frames,
@@ -112,8 +112,9 @@ def run(args: argparse.Namespace) -> int:
         routes=args.routes,
         video_steps=args.video_steps,
     )
-    check_pipeline_folder(args.out, "--out", "demo", signature=("stages",))
-    run_demo(claim_pipeline_folder(args.out, "demo"), budget, seed=args.seed)
+    check_pipeline_folder(args.out, "--out", "demo", signature=("stages", "data"))
+    with claimed_output_folder(args.out, "demo") as out:  # a refusal before the first stage leaves no folder
+        run_demo(out, budget, seed=args.seed)
     return 0
 
 

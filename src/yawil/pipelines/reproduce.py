@@ -98,11 +98,11 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
 
 
 def run(args: argparse.Namespace) -> int:
-    from yawil.fileio import check_pipeline_folder, claim_pipeline_folder
+    from yawil.fileio import check_pipeline_folder, claimed_output_folder
     from yawil.stages import run_stage
 
     try:  # a user's folder or a dataset is refused before any stage (the stages resume by reading it)
-        check_pipeline_folder(args.out, "--out", "reproduce", signature=("stages",))
+        check_pipeline_folder(args.out, "--out", "reproduce", signature=("stages", "data"))
     except ValueError as err:
         raise SystemExit(f"yawil reproduce: {err}") from None
     if args.profile == "zoo":
@@ -118,7 +118,7 @@ def run(args: argparse.Namespace) -> int:
         try:
             load_imagenet_weights(build_resnet34(), args.pretrained)
         except (ValueError, FileNotFoundError) as err:
-            raise SystemExit(f"yawil reproduce: --pretrained {args.pretrained}: {err}") from None
+            raise SystemExit(f"yawil reproduce: --pretrained: {err}") from None
     plan = stages(Path(args.out), profile, args.pretrained, seed=args.seed, device=args.device)
     print(f"profile {profile.name}: {json.dumps(asdict(profile))}")
     for name, _ in plan:
@@ -134,15 +134,15 @@ def run(args: argparse.Namespace) -> int:
     def say(msg: str) -> None:
         print(f"[reproduce] {msg}", flush=True)
 
-    claim_pipeline_folder(args.out, "reproduce")
-    for name, fn in plan:
-        run_stage(Path(args.out) / "stages" / f"{name}.json", fn, say, name)
+    with claimed_output_folder(args.out, "reproduce"):  # marked as reproduce's: an interrupted run resumes
+        for name, fn in plan:
+            run_stage(Path(args.out) / "stages" / f"{name}.json", fn, say, name)
     print(f"[reproduce] report: {Path(args.out) / 'report' / 'report.html'}")
     return 0
 
 
 def run_zoo(args: argparse.Namespace) -> int:
-    from yawil.fileio import claim_pipeline_folder
+    from yawil.fileio import claimed_output_folder
     from yawil.pipelines import zoo
     from yawil.stages import run_stage
 
@@ -155,9 +155,9 @@ def run_zoo(args: argparse.Namespace) -> int:
         print(f"  stage {name}")
     if args.dry_run:
         return 0
-    claim_pipeline_folder(out, "reproduce")
-    for name, fn in plan:
-        run_stage(out / "stages" / f"{name}.json", fn, lambda m: print(f"[reproduce zoo] {m}", flush=True), name)
+    with claimed_output_folder(out, "reproduce"):
+        for name, fn in plan:
+            run_stage(out / "stages" / f"{name}.json", fn, lambda m: print(f"[reproduce zoo] {m}", flush=True), name)
     print(f"[reproduce zoo] models in {'the repository zoo' if args.install else out / 'zoo'}")
     return 0
 

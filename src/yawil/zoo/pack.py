@@ -122,7 +122,7 @@ def pack(checkpoint: str | Path, name: str, data: Path, card: dict[str, Any], ro
     import shutil
 
     from yawil.data.check import check_dataset
-    from yawil.fileio import _check_writable_parent
+    from yawil.fileio import _check_writable_parent, check_not_inside_owned
     from yawil.policy.drive import DriveSettings
 
     if not name or "/" in name or name.startswith("."):
@@ -131,6 +131,8 @@ def pack(checkpoint: str | Path, name: str, data: Path, card: dict[str, Any], ro
     root = root or ZOO_DIR
     final = root / name
     _check_writable_parent(final, "--out")  # else the OS names the temporary folder, after the work
+    if root != ZOO_DIR:  # a model folder inside a dataset or run is read as part of it
+        check_not_inside_owned(root, "--out")
     if final.exists() or final.is_symlink():
         if not (final.is_dir() and (final / WEIGHTS).is_file() and (final / CARD).is_file()):
             raise ValueError(f"{final}: exists and is not a zoo model (no {WEIGHTS} and {CARD}); choose another "

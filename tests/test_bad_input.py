@@ -58,6 +58,10 @@ CASES = [
     (["export", "{t}/afile", "--onnx", "{t}/m.onnx", "--tolerance", "0.1"], "--tolerance 0.1: applies to --check",
      "{t}/m.onnx"),
     (["export", "{t}/afile", "--onnx", "{t}/m.onnx", "--batch", "8"], "--batch 8: applies to --check", "{t}/m.onnx"),
+    (["explain", "--checkpoint", "{t}/afile", "--frames", "{t}", "--town", "town01", "--out", "{t}/e"],
+     "--town town01: applies to --episode and --faithfulness --episode, not to --frames", "{t}/e"),
+    (["explain", "--failures", "{t}", "--class-task", "dense", "--count", "3", "--out", "{t}/e"],
+     "--count 3: applies to --frames and --faithfulness --frames, not to --failures", "{t}/e"),
 ]
 
 

@@ -70,6 +70,37 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     return p
 
 
+# The options each mode reads (beside --checkpoint, --out, --force): any other given is refused, not ignored.
+_EPISODE = {"town", "weather", "vehicles", "pedestrians", "route", "condition", "seed", "steps"}
+READS: dict[str, set[str]] = {
+    "--frames": {"count", "seed", "alpha"},
+    "--episode": _EPISODE | {"every", "alpha"},
+    "--faithfulness --frames": {"ks", "fill", "random", "seed", "count", "maps", "select"},
+    "--faithfulness --episode": _EPISODE | {"mask_layer", "horizon", "mask_k", "moments", "fill", "random", "maps"},
+    "--by-class": {"maps"} | {f"class_{k}" for k in ("task", "condition", "suite", "routes", "seeds", "every",
+                                                    "max_frames", "brake", "steer")},
+    "--failures": {"failure_reasons", "max_failures", "seconds", "strip", "maps", "alpha"},
+}
+_ALWAYS = {"checkpoint", "out", "force", "frames", "episode", "faithfulness", "by_class", "failures", "_run", "command"}
+
+
+def check_mode_options(args: argparse.Namespace) -> None:
+    """Refuse, in one line, an option the chosen mode does not read (`--town` with --frames was accepted and
+    did nothing). Given: different from its default."""
+    parser = argparse.ArgumentParser()
+    add_parser(parser.add_subparsers())
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices["explain"]
+    defaults = {a.dest: a.default for a in sub._actions}
+    mode = ("--failures" if args.failures else "--by-class" if args.by_class else
+            ("--faithfulness " if args.faithfulness else "") + ("--frames" if args.frames else "--episode"))
+    for dest, default in defaults.items():
+        if dest in _ALWAYS or dest not in vars(args) or getattr(args, dest) == default or dest in READS[mode]:
+            continue
+        users = [m for m, reads in READS.items() if dest in reads]
+        raise SystemExit(f"yawil explain: --{dest.replace('_', '-')} {getattr(args, dest)}: applies to "
+                         f"{' and '.join(users) or 'no mode'}, not to {mode}")
+
+
 def run(args: argparse.Namespace) -> int:
     from yawil.agent import Agent
     from yawil.explain.attention import EpisodeVideo, explain_episode, explain_frames
@@ -77,6 +108,7 @@ def run(args: argparse.Namespace) -> int:
 
     if args.count < 1 or args.steps < 1 or args.every < 1:
         raise SystemExit("yawil explain: --count, --steps and --every must be >= 1")
+    check_mode_options(args)
     check_output_folder(args.out, "--out", "explain", args.force)
     if args.failures:  # the agent is the results folder's (or --checkpoint's), built with its drive options
         from yawil.explain.failures import run_from_args as failures

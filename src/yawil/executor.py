@@ -261,10 +261,25 @@ class LocalExecutor(Executor):
         self._drain()
 
     def terminate(self) -> None:
-        # concurrent.futures stops no running task (terminate_workers comes with Python 3.14): end the processes
-        for process in list((self._pool._processes or {}).values()):
-            process.terminate()
-        self._pool.shutdown(wait=True, cancel_futures=True)
+        # concurrent.futures stops no running task (terminate_workers comes with Python 3.14): end the processes.
+        # The pool's manager thread may then fail reading from a dead worker's pipe and print its traceback under
+        # "interrupted" (a Ctrl-C of collect, 1 try in 4): its error is the stop's own, so it is not printed.
+        import threading
+
+        manager = getattr(self._pool, "_executor_manager_thread", None)
+        previous = threading.excepthook
+
+        def quiet(args: threading.ExceptHookArgs) -> None:
+            if args.thread is not manager:
+                previous(args)
+
+        threading.excepthook = quiet
+        try:
+            for process in list((self._pool._processes or {}).values()):
+                process.terminate()
+            self._pool.shutdown(wait=True, cancel_futures=True)
+        finally:
+            threading.excepthook = previous
         self._futures.clear()
 
 

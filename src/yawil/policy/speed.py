@@ -30,13 +30,18 @@ def speed_control_mode(value: bool | str | None) -> str | None:
     return str(value)
 
 
-def check_stop_release(seconds: float, mode: str | None) -> float:
-    """`stop_release` as a float, refused in one line unless >= 0 s and (when > 0) with the "stop" mode."""
+def _stop_seconds(name: str, seconds: float, mode: str | None, zero: str) -> float:
+    """A "stop" mode timer as a float, refused in one line unless >= 0 s and (when > 0) with the "stop" mode."""
     if isinstance(seconds, bool) or not isinstance(seconds, (int, float)) or not (math.isfinite(seconds) and seconds >= 0):
-        raise ValueError(f"stop_release={seconds!r}: expected seconds >= 0 (0: never release)")
+        raise ValueError(f"{name}={seconds!r}: expected seconds >= 0 (0: {zero})")
     if seconds and mode != "stop":
-        raise ValueError(f"stop_release={seconds!r} applies to --speed-control stop, not {mode!r}")
+        raise ValueError(f"{name}={seconds!r} applies to --speed-control stop, not {mode!r}")
     return float(seconds)
+
+
+def check_stop_release(seconds: float, mode: str | None) -> float:
+    """`stop_release` as a float (`_stop_seconds`)."""
+    return _stop_seconds("stop_release", seconds, mode, "never release")
 
 
 def check_stop_creep(metres: float, release: float) -> float:
@@ -49,12 +54,8 @@ def check_stop_creep(metres: float, release: float) -> float:
 
 
 def check_stop_hold(seconds: float, mode: str | None) -> float:
-    """`stop_hold` as a float, refused in one line unless >= 0 s and (when > 0) with the "stop" mode."""
-    if isinstance(seconds, bool) or not isinstance(seconds, (int, float)) or not (math.isfinite(seconds) and seconds >= 0):
-        raise ValueError(f"stop_hold={seconds!r}: expected seconds >= 0 (0: no hold)")
-    if seconds and mode != "stop":
-        raise ValueError(f"stop_hold={seconds!r} applies to --speed-control stop, not {mode!r}")
-    return float(seconds)
+    """`stop_hold` as a float (`_stop_seconds`)."""
+    return _stop_seconds("stop_hold", seconds, mode, "no hold")
 
 
 def add_speed_control_arguments(p: argparse.ArgumentParser, what: str = "") -> None:

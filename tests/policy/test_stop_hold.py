@@ -35,3 +35,18 @@ def test_bench_records_the_hold_only_when_set() -> None:
     assert spec.options()["stop_hold"] == 1.0 and spec.drive()["stop_hold"] == 1.0
     with pytest.raises(ValueError, match="stop_hold"):
         AgentSpec("zoo:yilratt-dagger-dense2", speed_control="target", stop_hold=1.0).validate(build=False)
+
+
+def test_dagger_drives_its_learner_with_the_hold() -> None:
+    """`yawil dagger --stop-hold` is a setting of the run (dagger.json), checked like the release, and reaches the
+    learner's agent; an older run folder without it reads as 0 (no hold)."""
+    import inspect
+
+    from yawil.pipelines.dagger import DaggerConfig, load_learner
+
+    aux = {"model_args": {"aux": True, "lead_stop": True}, "aux_weight": 0.5}
+    cfg = DaggerConfig(model="yilratt", speed_control="stop", stop_release=10.0, stop_hold=1.0, train_args=aux)
+    assert cfg.to_dict()["stop_hold"] == 1.0 and DaggerConfig().to_dict()["stop_hold"] == 0.0
+    with pytest.raises(ValueError, match="stop_hold"):
+        DaggerConfig(model="yilratt", speed_control="target", stop_hold=1.0, train_args=aux)
+    assert "stop_hold" in inspect.signature(load_learner).parameters

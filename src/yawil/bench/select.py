@@ -84,7 +84,8 @@ def candidate_label(path: Path) -> str:
 def select_checkpoint(checkpoints: Sequence[Path], out: Path, routes: int = 3, workers: int = 1,
                       progress: bool = True, speed_control: bool | str = False,
                       stop_release: float = 0.0, engine: str = "auto",
-                      episodes_per_worker: int | None = None, stop_creep: float = 0.0) -> dict[str, Any]:
+                      episodes_per_worker: int | None = None, stop_creep: float = 0.0,
+                      stop_hold: float = 0.0) -> dict[str, Any]:
     """Drive every candidate on the validation set (resumable per episode), write OUT/selection.json."""
     from yawil.bench.records import read_records
     from yawil.bench.runner import AgentSpec, run_benchmark
@@ -99,6 +100,7 @@ def select_checkpoint(checkpoints: Sequence[Path], out: Path, routes: int = 3, w
     eps = validation_episodes(routes=routes)
     # every candidate read and its agent built before any is driven: a bad last one fails in seconds, not hours
     specs = [AgentSpec(str(path), speed_control=speed_control, stop_release=stop_release, stop_creep=stop_creep,
+                       stop_hold=stop_hold,
                        engine=engine).validate() for path in checkpoints]
     rows: list[dict[str, Any]] = []
     for path, label, spec in zip(checkpoints, labels, specs, strict=True):
@@ -159,7 +161,7 @@ def run(args: argparse.Namespace) -> int:
         with claimed_output_folder(args.out, "select") as out:  # a refused candidate leaves no folder
             result = select_checkpoint(paths, out, args.routes, args.workers, not args.no_progress,
                                        args.speed_control, args.stop_release, args.engine, args.episodes_per_worker,
-                                       args.stop_creep)
+                                       args.stop_creep, args.stop_hold)
         if args.link:
             from yawil.learn.artifacts import link_or_copy
 

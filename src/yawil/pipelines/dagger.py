@@ -35,6 +35,7 @@ from yawil.policy.speed import (
     SPEED_CONTROLS,
     add_speed_control_arguments,
     check_stop_creep,
+    check_stop_hold,
     check_stop_release,
     speed_control_mode,
 )
@@ -82,6 +83,7 @@ class DaggerConfig:
     speed_control: bool | str = False
     stop_release: float = 0.0  # s: the learner's "stop" release, as `yawil bench --stop-release`
     stop_creep: float = 0.0  # m: the release's creep length, as `yawil bench --stop-creep`
+    stop_hold: float = 0.0  # s: the learner's "stop" hold, as `yawil bench --stop-hold`
     # traffic of the on-policy rounds, per round ((LO, HI) drawn per episode; the last repeats; None: collect's
     # default; one (LO, HI) pair is every round's). Why: dense-traffic failures need the learner's own states in
     # queues, which the default 10-30 vehicles rarely make; per round so a finished run can grow a denser round
@@ -122,6 +124,10 @@ class DaggerConfig:
             check_stop_creep(self.stop_creep, self.stop_release)
         except ValueError:
             need(False, "stop_creep", "metres >= 0, > 0 only with a stop_release")
+        try:
+            check_stop_hold(self.stop_hold, mode)
+        except ValueError:
+            need(False, "stop_hold", "seconds >= 0, > 0 only with speed_control 'stop'")
         need(isinstance(self.expert_args, dict), "expert_args", "a mapping of ExpertConfig settings")
         for name in ("round_vehicles", "round_pedestrians"):
             v = getattr(self, name)
@@ -209,7 +215,7 @@ def _is_int(v: Any) -> bool:
 
 
 def load_learner(checkpoint: str, threads: int = 1, speed_control: bool | str = False,
-                 stop_release: float = 0.0, stop_creep: float = 0.0) -> Any:
+                 stop_release: float = 0.0, stop_creep: float = 0.0, stop_hold: float = 0.0) -> Any:
     """The learner of a collection process: the checkpoint's agent on the CPU, with `threads` torch threads,
     driving as it will be benchmarked (`speed_control`: throttle and brake from its target speed), so that the
     states it visits are the ones the benchmark will see."""
@@ -219,7 +225,7 @@ def load_learner(checkpoint: str, threads: int = 1, speed_control: bool | str = 
 
     torch.set_num_threads(threads)
     return Agent.from_checkpoint(checkpoint, device="cpu", speed_control=speed_control, stop_release=stop_release,
-                                 stop_creep=stop_creep)
+                                 stop_creep=stop_creep, stop_hold=stop_hold)
 
 
 # ------------------------------------------------------------------------------------------------- loop
@@ -272,7 +278,7 @@ class DaggerRun:
             defaults = DaggerConfig().to_dict()  # a setting added later reads as its default in older folders
             saved = {**{k: v for k, v in defaults.items() if k not in saved}, **saved}
             diff = sorted(k for k in set(saved) | set(mine) if k not in growable and saved.get(k) != mine.get(k))
-            had = saved.get("rounds") if _is_int(saved.get("rounds")) else 0
+            had = int(saved["rounds"]) if _is_int(saved.get("rounds")) else 0
             diff += [k for k in PER_ROUND
                      if any(_round_value(saved, k, r) != _round_value(mine, k, r) for r in range(1, had + 1))]
             if diff:
@@ -359,11 +365,11 @@ class DaggerRun:
                             takeover_lateral=cfg.takeover_lateral, takeover_decel=cfg.takeover_decel,
                             takeover_stall=cfg.takeover_stall, takeover_seconds=cfg.takeover_seconds)
         learner = Learner(factory=functools.partial(load_learner, str(policy), 1, cfg.speed_control, cfg.stop_release,
-                                                            cfg.stop_creep), onpolicy=onpolicy,
+                                                            cfg.stop_creep, cfg.stop_hold), onpolicy=onpolicy,
                           identity=str(policy.resolve()), min_world_seed=BENCH_WORLD_SEED_LIMIT,
                           reject_route=BenchmarkRoutes(cfg.town))
         # No steering noise (the learner makes its own mistakes); the second before a collision is not a label.
-        traffic = cfg.traffic_of(r)
+        traffic: dict[str, Any] = dict(cfg.traffic_of(r))  # only what is set: collect's defaults for the rest
         s = collect(self.round_data(r), town=cfg.town, weathers="train", frames=cfg.round_frames, workers=cfg.workers,
                     seed=cfg.seed + ROUND_SEED_STRIDE * r, progress=self.progress, learner=learner, desc=f"round {r}",
                     noise_fraction=0.0, trim_seconds=1.0, max_episode_frames=cfg.episode_frames,
@@ -488,7 +494,7 @@ def run(args: argparse.Namespace) -> int:
             lr=args.lr, round_lr=args.round_lr, workers=args.workers, executor=executor_from_args(args).kind, ray_address=args.ray_address,
             threads=args.threads, train_args=_train_args(args.train_arg),
             round0=args.round0, expert_data=args.expert_data, speed_control=args.speed_control,
-            stop_release=args.stop_release, stop_creep=args.stop_creep,
+            stop_release=args.stop_release, stop_creep=args.stop_creep, stop_hold=args.stop_hold,
             round_vehicles=args.round_vehicles, round_pedestrians=args.round_pedestrians,
             expert_args=_expert_args(args.expert_arg), guidance_reference=args.guidance_reference,
         )

@@ -58,6 +58,8 @@ CASES = [
     (["export", "{t}/afile", "--onnx", "{t}/m.onnx", "--tolerance", "0.1"], "--tolerance 0.1: applies to --check",
      "{t}/m.onnx"),
     (["export", "{t}/afile", "--onnx", "{t}/m.onnx", "--batch", "8"], "--batch 8: applies to --check", "{t}/m.onnx"),
+    (["bench", "routes", "--agent", "zoo:x", "--routes-dir", "{t}/r"], "--agent zoo:x: not read by bench routes", "{t}/r"),
+    (["bench", "validate", "--workers", "2"], "--workers 2: not read by bench validate", None),
     (["explain", "--checkpoint", "{t}/afile", "--frames", "{t}", "--town", "town01", "--out", "{t}/e"],
      "--town town01: applies to --episode and --faithfulness --episode, not to --frames", "{t}/e"),
     (["explain", "--failures", "{t}", "--class-task", "dense", "--count", "3", "--out", "{t}/e"],

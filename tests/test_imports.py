@@ -46,7 +46,7 @@ SRC = Path(__file__).resolve().parent.parent / "src"
 
 # (layer name, module prefixes), lowest first. A module belongs to the layer of its longest matching prefix.
 LAYERS: tuple[tuple[str, tuple[str, ...]], ...] = (
-    ("base", ("yawil", "yawil.executor", "yawil.fileio", "yawil.locking", "yawil.provenance", "yawil.signals", "yawil.stages", "yawil.video",
+    ("base", ("yawil", "yawil.cliargs", "yawil.executor", "yawil.fileio", "yawil.locking", "yawil.provenance", "yawil.signals", "yawil.stages", "yawil.video",
               "yawil.zoo")),
     ("sim", ("yawil.sim",)),
     ("guidance", ("yawil.guidance",)),

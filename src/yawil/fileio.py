@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import contextlib
 import json
+import math
 import os
 import tempfile
 import threading
@@ -117,6 +118,20 @@ OWNED_MARKERS: dict[str, str | None] = {
     "manifest.json": "episodes",  # a dataset
     "card.json": "model.pt",  # a zoo model
 }
+
+
+def non_finite(value: Any, where: str = "") -> tuple[str, float] | None:
+    """The first (field path, e.g. `trajectory[3][1]`, value) in a JSON value holding a NaN or an infinity, else
+    None: Python's JSON reads and writes them, other readers refuse them, and no figure may be one."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return where or "(the record)", value
+    items = value.items() if isinstance(value, dict) else enumerate(value) if isinstance(value, list) else ()
+    for key, item in items:
+        name = f"{where}[{key}]" if isinstance(key, int) else f"{where}.{key}" if where else str(key)
+        found = non_finite(item, name)
+        if found is not None:
+            return found
+    return None
 
 
 def is_owned(folder: Path) -> bool:

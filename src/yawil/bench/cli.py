@@ -168,10 +168,32 @@ def _split(values: list[str] | None) -> list[str] | None:
     return [v.strip() for item in values for v in item.split(",") if v.strip()]
 
 
+ROUTE_OPTIONS = {"routes": {"town", "routes_dir", "seed"}, "validate": {"town", "routes_dir"}}
+
+
+def check_route_action_options(args: argparse.Namespace) -> None:
+    """`bench routes` and `bench validate` read only their own options: any run option given (`--agent`,
+    `--workers`, `--out`, ...) is refused in one line instead of doing nothing. Given: not its default."""
+    if args.action not in ROUTE_OPTIONS:
+        return
+    parser = argparse.ArgumentParser()
+    add_parser(parser.add_subparsers())
+    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices["bench"]
+    for action in sub._actions:
+        dest = action.dest
+        if dest in ("help", "action", "_run", "command") or dest in ROUTE_OPTIONS[args.action] or dest not in vars(args):
+            continue
+        if getattr(args, dest) != action.default:
+            flag = action.option_strings[-1] if action.option_strings else dest
+            raise ValueError(f"{flag} {getattr(args, dest)}: not read by bench {args.action}, which takes "
+                             f"{', '.join('--' + o.replace('_', '-') for o in sorted(ROUTE_OPTIONS[args.action]))}")
+
+
 def run(args: argparse.Namespace) -> int:
     from pathlib import Path
 
     try:
+        check_route_action_options(args)
         if args.action == "routes":
             from yawil.bench.routegen import check_route_target, write_route_file
 

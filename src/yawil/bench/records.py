@@ -17,7 +17,7 @@ from collections.abc import Callable, Iterator, Mapping
 from pathlib import Path
 from typing import Any, TextIO
 
-from yawil.fileio import write_json_atomic
+from yawil.fileio import non_finite, write_json_atomic
 
 EPISODES_FILE = "episodes.jsonl"
 RUN_FILE = "run.json"
@@ -56,20 +56,6 @@ def read_records(path: str | Path, repair: bool = False,
     does a number that is not finite (NaN, Infinity, 1e999: Python's JSON reads them, no figure may hold one).
     """
     return [rec for _, rec in _read_numbered(path, repair, on_partial)]
-
-
-def non_finite(value: Any, where: str = "") -> tuple[str, float] | None:
-    """The first (field path, e.g. `trajectory[3][1]`, value) in a JSON value holding a NaN or an infinity, else
-    None: Python's JSON reads and writes them, other readers refuse them, and no figure may be one."""
-    if isinstance(value, float) and not math.isfinite(value):
-        return where or "(the record)", value
-    items = value.items() if isinstance(value, dict) else enumerate(value) if isinstance(value, list) else ()
-    for key, item in items:
-        name = f"{where}[{key}]" if isinstance(key, int) else f"{where}.{key}" if where else str(key)
-        found = non_finite(item, name)
-        if found is not None:
-            return found
-    return None
 
 
 def _read_numbered(path: str | Path, repair: bool = False,

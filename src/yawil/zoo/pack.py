@@ -87,7 +87,7 @@ def check_card(card: Any, where: str) -> dict[str, Any]:
     """A card's own fields, refused in one line if one is unknown (a typo would vanish silently), one is pack's
     to write, a number is NaN or infinite (a figure that means nothing, and card.json would not be JSON), or its
     `drive` is not a valid way of driving."""
-    from yawil.bench.records import non_finite
+    from yawil.fileio import non_finite
     from yawil.policy.drive import DriveSettings
     from yawil.zoo import DRIVE_KEYS
 

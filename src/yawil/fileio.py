@@ -209,28 +209,13 @@ def check_output_folder(path: str | os.PathLike[str], option: str, command: str,
     (same-named files are then replaced); a file, or a folder a yawil stage owns (dataset, run, results, zoo
     model: `OWNED_MARKERS`) or lying inside one, is refused whatever `force` says. Checked before any work."""
     path = Path(path)
-    if path.exists() and not path.is_dir():
-        raise ValueError(f"{option} {path}: is a file; expected a folder to write into")
-    check_not_inside_owned(path, option)  # a new folder there too: its files would be read as the stage's
-    if not path.exists():
-        _check_writable_parent(path, option)
-        return path
-    if is_owned(path):
-        raise ValueError(f"{option} {path}: a yawil dataset, run, results or model folder; give a new folder "
-                         f"outside it (for example {command.replace(' ', '_')}/); --force does not write there")
-    try:
-        entries = [e.name for e in path.iterdir()]
-    except OSError as err:
-        raise ValueError(f"{option} {path}: cannot be read ({err.strerror or err})") from None
+    entries = _output_folder_entries(path, option)
     if not entries:
         return path
     made_by = _made_by(path)
-    if made_by == command:
+    if made_by == command or force:
         return path
-    if force:
-        return path
-    held = f"{len(entries)} entr{'y' if len(entries) == 1 else 'ies'}"
-    what = f"was written by `yawil {made_by}`" if made_by else f"holds {held} yawil {command} did not write"
+    what = f"was written by `yawil {made_by}`" if made_by else f"holds {_entries(entries)} yawil {command} did not write"
     raise ValueError(f"{option} {path}: {what}; give a new or empty folder, or --force to write beside them "
                      "(files of the same name are replaced)")
 
@@ -243,24 +228,34 @@ def check_pipeline_folder(path: str | os.PathLike[str], option: str, command: st
     before the mark existed, so older folders resume). Why: these pipelines resume by reading their folder, so
     a foreign folder was written into and its files read as the pipeline's. Checked before any work."""
     path = Path(path)
-    if path.exists() and not path.is_dir():
-        raise ValueError(f"{option} {path}: is a file; expected a folder to write into")
-    check_not_inside_owned(path, option)
-    if not path.exists():
-        _check_writable_parent(path, option)
-        return path
-    if is_owned(path):
-        raise ValueError(f"{option} {path}: a yawil dataset, run, results or model folder, not a {command} "
-                         "folder; give a new folder")
-    try:
-        entries = {e.name for e in path.iterdir()}
-    except OSError as err:
-        raise ValueError(f"{option} {path}: cannot be read ({err.strerror or err})") from None
+    entries = _output_folder_entries(path, option)
     if not entries or _made_by(path) == command or entries & set(signature):
         return path
-    held = f"{len(entries)} entr{'y' if len(entries) == 1 else 'ies'}"
-    raise ValueError(f"{option} {path}: holds {held} yawil {command} did not write; give a new or empty folder "
+    raise ValueError(f"{option} {path}: holds {_entries(entries)} yawil {command} did not write; give a new or empty folder "
                      f"(a {command} folder is resumed where it stopped)")
+
+
+def _output_folder_entries(path: Path, option: str) -> set[str]:
+    """What an output folder holds (empty when it is new), refusing in one line a file, a folder that a yawil
+    stage owns or that lies inside one, a parent this process cannot write in, and a folder it cannot read: the
+    part of every folder rule that does not depend on the command."""
+    if path.exists() and not path.is_dir():
+        raise ValueError(f"{option} {path}: is a file; expected a folder to write into")
+    check_not_inside_owned(path, option)  # a new folder there too: its files would be read as the stage's
+    if not path.exists():
+        _check_writable_parent(path, option)
+        return set()
+    if is_owned(path):
+        raise ValueError(f"{option} {path}: a yawil dataset, run, results or model folder; give a new folder "
+                         "outside it (--force does not write there)")
+    try:
+        return {e.name for e in path.iterdir()}
+    except OSError as err:
+        raise ValueError(f"{option} {path}: cannot be read ({err.strerror or err})") from None
+
+
+def _entries(entries: set[str]) -> str:
+    return f"{len(entries)} entr{'y' if len(entries) == 1 else 'ies'}"
 
 
 def _made_by(folder: Path) -> str | None:

@@ -11,7 +11,7 @@ import argparse
 from collections.abc import Callable
 from typing import Any
 
-from yawil.cliargs import seed
+from yawil.cliargs import given_options, seed
 
 
 class ChoiceHelp(argparse.Action):
@@ -176,16 +176,9 @@ def check_route_action_options(args: argparse.Namespace) -> None:
     `--workers`, `--out`, ...) is refused in one line instead of doing nothing. Given: not its default."""
     if args.action not in ROUTE_OPTIONS:
         return
-    parser = argparse.ArgumentParser()
-    add_parser(parser.add_subparsers())
-    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices["bench"]
-    for action in sub._actions:
-        dest = action.dest
-        if dest in ("help", "action", "_run", "command") or dest in ROUTE_OPTIONS[args.action] or dest not in vars(args):
-            continue
-        if getattr(args, dest) != action.default:
-            flag = action.option_strings[-1] if action.option_strings else dest
-            raise ValueError(f"{flag} {getattr(args, dest)}: not read by bench {args.action}, which takes "
+    for dest, (flag, value) in given_options(args, add_parser, "bench").items():
+        if dest not in ROUTE_OPTIONS[args.action]:
+            raise ValueError(f"{flag} {value}: not read by bench {args.action}, which takes "
                              f"{', '.join('--' + o.replace('_', '-') for o in sorted(ROUTE_OPTIONS[args.action]))}")
 
 

@@ -8,7 +8,7 @@ from __future__ import annotations
 import argparse
 from pathlib import Path
 
-from yawil.cliargs import seed
+from yawil.cliargs import given_options, seed
 
 
 def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParser:  # type: ignore[type-arg]
@@ -81,24 +81,19 @@ READS: dict[str, set[str]] = {
                                                     "max_frames", "brake", "steer")},
     "--failures": {"failure_reasons", "max_failures", "seconds", "strip", "maps", "alpha"},
 }
-_ALWAYS = {"checkpoint", "out", "force", "frames", "episode", "faithfulness", "by_class", "failures", "_run", "command"}
+_ALWAYS = {"checkpoint", "out", "force", "frames", "episode", "faithfulness", "by_class", "failures"}
 
 
 def check_mode_options(args: argparse.Namespace) -> None:
     """Refuse, in one line, an option the chosen mode does not read (`--town` with --frames was accepted and
     did nothing). Given: different from its default."""
-    parser = argparse.ArgumentParser()
-    add_parser(parser.add_subparsers())
-    sub = next(a for a in parser._actions if isinstance(a, argparse._SubParsersAction)).choices["explain"]
-    defaults = {a.dest: a.default for a in sub._actions}
     mode = ("--failures" if args.failures else "--by-class" if args.by_class else
             ("--faithfulness " if args.faithfulness else "") + ("--frames" if args.frames else "--episode"))
-    for dest, default in defaults.items():
-        if dest in _ALWAYS or dest not in vars(args) or getattr(args, dest) == default or dest in READS[mode]:
+    for dest, (flag, value) in given_options(args, add_parser, "explain").items():
+        if dest in _ALWAYS or dest in READS[mode]:
             continue
         users = [m for m, reads in READS.items() if dest in reads]
-        raise SystemExit(f"yawil explain: --{dest.replace('_', '-')} {getattr(args, dest)}: applies to "
-                         f"{' and '.join(users) or 'no mode'}, not to {mode}")
+        raise SystemExit(f"yawil explain: {flag} {value}: applies to {' and '.join(users) or 'no mode'}, not to {mode}")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -220,10 +220,11 @@ def run(args: argparse.Namespace) -> int:
         print(f"yawil export: --data {args.data}: applies to --check (the real frames it compares on); give "
               "--check too, or leave --data out", file=sys.stderr)
         return 2
-    for name, default in (("batch", 4), ("tolerance", 1e-4), ("attention_tolerance", 1e-3)):
-        if getattr(args, name) != default and not args.check:  # settings of the check alone: they would do nothing
-            print(f"yawil export: --{name.replace('_', '-')} {getattr(args, name)}: applies to --check; give --check "
-                  "too, or leave it out", file=sys.stderr)
+    from yawil.cliargs import given_options
+
+    for name, (flag, value) in given_options(args, add_parser, "export").items():
+        if name in ("batch", "tolerance", "attention_tolerance") and not args.check:  # the check's alone: no effect
+            print(f"yawil export: {flag} {value}: applies to --check; give --check too, or leave it out", file=sys.stderr)
             return 2
     for name in ("tolerance", "attention_tolerance"):  # checked before the export, not after its comparison
         v = getattr(args, name)

@@ -37,11 +37,10 @@ def test_bench_records_the_hold_only_when_set() -> None:
         AgentSpec("zoo:yilratt-dagger-dense2", speed_control="target", stop_hold=1.0).validate(build=False)
 
 
-def test_dagger_drives_its_learner_with_the_hold() -> None:
+def test_dagger_drives_its_learner_with_the_hold(monkeypatch: pytest.MonkeyPatch) -> None:
     """`yawil dagger --stop-hold` is a setting of the run (dagger.json), checked like the release, and reaches the
     learner's agent; an older run folder without it reads as 0 (no hold)."""
-    import inspect
-
+    from yawil.agent import Agent
     from yawil.pipelines.dagger import DaggerConfig, load_learner
 
     aux = {"model_args": {"aux": True, "lead_stop": True}, "aux_weight": 0.5}
@@ -49,4 +48,7 @@ def test_dagger_drives_its_learner_with_the_hold() -> None:
     assert cfg.to_dict()["stop_hold"] == 1.0 and DaggerConfig().to_dict()["stop_hold"] == 0.0
     with pytest.raises(ValueError, match="stop_hold"):
         DaggerConfig(model="yilratt", speed_control="target", stop_hold=1.0, train_args=aux)
-    assert "stop_hold" in inspect.signature(load_learner).parameters
+    seen: dict = {}
+    monkeypatch.setattr(Agent, "from_checkpoint", classmethod(lambda cls, path, **kw: seen.update(kw)))
+    load_learner("x.pt", 1, "stop", stop_release=10.0, stop_hold=1.0)
+    assert seen["stop_hold"] == 1.0 and seen["speed_control"] == "stop"

@@ -24,7 +24,14 @@ from yawil.bench.records import PROTOCOL, EpisodeLog, check_run_info, episode_ke
 from yawil.bench.suites import Episode
 from yawil.executor import ExecutorConfig, for_worker, open_executor
 from yawil.locking import folder_lock
-from yawil.policy.speed import check_stop_creep, check_stop_hold, check_stop_release, speed_control_mode
+from yawil.policy.speed import (
+    check_stop_creep,
+    check_stop_gate,
+    check_stop_hold,
+    check_stop_release,
+    given_drive,
+    speed_control_mode,
+)
 from yawil.sim.types import Control, Observation, World
 
 EXPERT = "expert"
@@ -59,6 +66,7 @@ class AgentSpec:
     engine: str = "auto"  # where a learned agent's network runs (yawil.policy.engine: auto, torch, openvino, onnxruntime)
     stop_creep: float = 0.0  # m after which the release's creep ends (yawil.policy.drive.StopRelease; 0: its 2 s)
     stop_hold: float = 0.0  # s the "stop" mode's stop outlasts its class (yawil.policy.drive.StopHold; 0: none)
+    stop_gate: float = 0.0  # m of predicted lead distance under which a stand does not count toward the release
 
     @property
     def is_expert(self) -> bool:
@@ -88,6 +96,8 @@ class AgentSpec:
             opts["stop_creep"] = float(self.stop_creep)
         if self.stop_hold:  # only when set, so the records of earlier runs still match
             opts["stop_hold"] = float(self.stop_hold)
+        if self.stop_gate:  # only when set, so the records of earlier runs still match
+            opts["stop_gate"] = float(self.stop_gate)
         if self.device != "cpu" and not self.is_expert:  # only when set, so the records of earlier runs still match
             opts["device"] = self.device
         if not self.is_expert:  # the engine and its precision change the numbers, so a resume must use the same
@@ -105,7 +115,8 @@ class AgentSpec:
             raise ValueError(f"--agent {self.agent!r}: expected 'expert', zoo:NAME or the path of a checkpoint file")
         if self.is_expert and (self.yaw_noise_deg or self.command_noise_p or self.speed_control):
             raise ValueError("noise and speed-control options apply to learned agents, not to the expert")
-        check_stop_creep(self.stop_creep, check_stop_release(self.stop_release, speed_control_mode(self.speed_control)))
+        release = check_stop_release(self.stop_release, speed_control_mode(self.speed_control))
+        check_stop_creep(self.stop_creep, release), check_stop_gate(self.stop_gate, release)
         check_stop_hold(self.stop_hold, speed_control_mode(self.speed_control))
         if self.expert_args and not self.is_expert:
             raise ValueError("--expert-arg applies to --agent expert only")
@@ -174,7 +185,8 @@ class AgentSpec:
     def drive(self) -> dict[str, Any]:
         """The drive settings of a learned agent, as keyword options of `yawil.agent.Agent.from_checkpoint`."""
         return {"speed_control": self.speed_control, "stop_release": self.stop_release, "stop_creep": self.stop_creep,
-                "stop_hold": self.stop_hold, "yaw_noise_deg": self.yaw_noise_deg, "command_noise_p": self.command_noise_p,
+                "stop_hold": self.stop_hold, "stop_gate": self.stop_gate, "yaw_noise_deg": self.yaw_noise_deg,
+                "command_noise_p": self.command_noise_p,
                 "yaw_noise_mode": self.yaw_noise_mode, "command_noise_mode": self.command_noise_mode}
 
     def build(self, seed: int, slots: int = 1) -> DrivingAgent:
@@ -192,11 +204,10 @@ class AgentSpec:
 
 
 def drive_options(args: Any) -> dict[str, Any]:
-    """--speed-control, --stop-release, --stop-creep and --stop-hold as given (keyword options of `AgentSpec`); for a zoo model
+    """--speed-control and the stop release's options as given (keyword options of `AgentSpec`); for a zoo model
     given none of them, its card's `drive` (so that `--agent zoo:NAME` drives as the card's figures were
     measured), said in one line."""
-    given = {"speed_control": args.speed_control, "stop_release": args.stop_release,
-             "stop_creep": getattr(args, "stop_creep", 0.0), "stop_hold": getattr(args, "stop_hold", 0.0)}
+    given = given_drive(args)
     if any(given.values()) or not str(args.agent).startswith("zoo:"):
         return given
     from yawil.zoo import card_drive, drive_flags

@@ -14,14 +14,14 @@ from __future__ import annotations
 import argparse
 import json
 import sys
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
 from yawil.bench.suites import TASKS, Episode, RouteSpec, load_routes
-from yawil.policy.speed import add_engine_arguments, add_speed_control_arguments
+from yawil.policy.speed import add_engine_arguments, add_speed_control_arguments, given_drive
 from yawil.sim.weather import TRAIN_WEATHERS
 
 VALIDATION_ROUTE_SEED = 101  # route draw of the validation set (the committed benchmark routes use seed 0)
@@ -82,11 +82,10 @@ def candidate_label(path: Path) -> str:
 
 
 def select_checkpoint(checkpoints: Sequence[Path], out: Path, routes: int = 3, workers: int = 1,
-                      progress: bool = True, speed_control: bool | str = False,
-                      stop_release: float = 0.0, engine: str = "auto",
-                      episodes_per_worker: int | None = None, stop_creep: float = 0.0,
-                      stop_hold: float = 0.0) -> dict[str, Any]:
-    """Drive every candidate on the validation set (resumable per episode), write OUT/selection.json."""
+                      progress: bool = True, drive: Mapping[str, Any] | None = None, engine: str = "auto",
+                      episodes_per_worker: int | None = None) -> dict[str, Any]:
+    """Drive every candidate on the validation set (resumable per episode), write OUT/selection.json. `drive`:
+    how every candidate is driven (keyword options of `AgentSpec`: speed_control, stop_release, ...)."""
     from yawil.bench.records import read_records
     from yawil.bench.runner import AgentSpec, run_benchmark
     from yawil.fileio import write_json_atomic
@@ -99,9 +98,7 @@ def select_checkpoint(checkpoints: Sequence[Path], out: Path, routes: int = 3, w
         raise ValueError(f"select: candidates must differ in folder or file name, got {labels}")
     eps = validation_episodes(routes=routes)
     # every candidate read and its agent built before any is driven: a bad last one fails in seconds, not hours
-    specs = [AgentSpec(str(path), speed_control=speed_control, stop_release=stop_release, stop_creep=stop_creep,
-                       stop_hold=stop_hold,
-                       engine=engine).validate() for path in checkpoints]
+    specs = [AgentSpec(str(path), engine=engine, **(drive or {})).validate() for path in checkpoints]
     rows: list[dict[str, Any]] = []
     for path, label, spec in zip(checkpoints, labels, specs, strict=True):
         ck = load_checkpoint(path, map_location="cpu")
@@ -160,8 +157,7 @@ def run(args: argparse.Namespace) -> int:
             check_output_file(args.link, "--link", args.force)  # before any candidate is driven
         with claimed_output_folder(args.out, "select") as out:  # a refused candidate leaves no folder
             result = select_checkpoint(paths, out, args.routes, args.workers, not args.no_progress,
-                                       args.speed_control, args.stop_release, args.engine, args.episodes_per_worker,
-                                       args.stop_creep, args.stop_hold)
+                                       given_drive(args), args.engine, args.episodes_per_worker)
         if args.link:
             from yawil.learn.artifacts import link_or_copy
 

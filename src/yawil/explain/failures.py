@@ -111,7 +111,7 @@ def load_agent_of(info: Mapping[str, Any], checkpoint: str | None = None, where:
         raise ValueError(f"{where}: the agent is the expert: it has no heat maps to explain (give --checkpoint to "
                          "explain a learned agent's drive of the same episodes)")
     kw = {k: opts[k] for k in ("yaw_noise_deg", "command_noise_p", "yaw_noise_mode", "command_noise_mode",
-                               "speed_control", "stop_release", "stop_creep", "stop_hold") if k in opts}
+                               "speed_control", "stop_release", "stop_creep", "stop_hold", "stop_gate") if k in opts}
     label = str(opts.get("engine", "auto"))
     engine, _, precision = label.partition("-")
     spec = AgentSpec(name, engine=engine or "auto", **kw)

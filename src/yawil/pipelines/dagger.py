@@ -35,6 +35,7 @@ from yawil.policy.speed import (
     SPEED_CONTROLS,
     add_speed_control_arguments,
     check_stop_creep,
+    check_stop_gate,
     check_stop_hold,
     check_stop_release,
     speed_control_mode,
@@ -84,6 +85,7 @@ class DaggerConfig:
     stop_release: float = 0.0  # s: the learner's "stop" release, as `yawil bench --stop-release`
     stop_creep: float = 0.0  # m: the release's creep length, as `yawil bench --stop-creep`
     stop_hold: float = 0.0  # s: the learner's "stop" hold, as `yawil bench --stop-hold`
+    stop_gate: float = 0.0  # m: the release's lead-distance gate, as `yawil bench --stop-gate`
     # traffic of the on-policy rounds, per round ((LO, HI) drawn per episode; the last repeats; None: collect's
     # default; one (LO, HI) pair is every round's). Why: dense-traffic failures need the learner's own states in
     # queues, which the default 10-30 vehicles rarely make; per round so a finished run can grow a denser round
@@ -128,6 +130,10 @@ class DaggerConfig:
             check_stop_hold(self.stop_hold, mode)
         except ValueError:
             need(False, "stop_hold", "seconds >= 0, > 0 only with speed_control 'stop'")
+        try:
+            check_stop_gate(self.stop_gate, self.stop_release)
+        except ValueError:
+            need(False, "stop_gate", "metres >= 0, > 0 only with a stop_release")
         need(isinstance(self.expert_args, dict), "expert_args", "a mapping of ExpertConfig settings")
         for name in ("round_vehicles", "round_pedestrians"):
             v = getattr(self, name)
@@ -214,18 +220,17 @@ def _is_int(v: Any) -> bool:
     return isinstance(v, int) and not isinstance(v, bool)
 
 
-def load_learner(checkpoint: str, threads: int = 1, speed_control: bool | str = False,
-                 stop_release: float = 0.0, stop_creep: float = 0.0, stop_hold: float = 0.0) -> Any:
+def load_learner(checkpoint: str, threads: int = 1, speed_control: bool | str = False, **release: float) -> Any:
     """The learner of a collection process: the checkpoint's agent on the CPU, with `threads` torch threads,
-    driving as it will be benchmarked (`speed_control`: throttle and brake from its target speed), so that the
-    states it visits are the ones the benchmark will see."""
+    driving as it will be benchmarked (`speed_control`: throttle and brake from its target speed; `release`:
+    stop_release, stop_creep, stop_hold, stop_gate), so that the states it visits are the ones the benchmark will
+    see."""
     import torch
 
     from yawil.agent import Agent
 
     torch.set_num_threads(threads)
-    return Agent.from_checkpoint(checkpoint, device="cpu", speed_control=speed_control, stop_release=stop_release,
-                                 stop_creep=stop_creep, stop_hold=stop_hold)
+    return Agent.from_checkpoint(checkpoint, device="cpu", speed_control=speed_control, **release)
 
 
 # ------------------------------------------------------------------------------------------------- loop
@@ -364,8 +369,10 @@ class DaggerRun:
         onpolicy = OnPolicy(round=r, beta=cfg.beta_of(r), segment_seconds=cfg.segment_seconds,
                             takeover_lateral=cfg.takeover_lateral, takeover_decel=cfg.takeover_decel,
                             takeover_stall=cfg.takeover_stall, takeover_seconds=cfg.takeover_seconds)
-        learner = Learner(factory=functools.partial(load_learner, str(policy), 1, cfg.speed_control, cfg.stop_release,
-                                                            cfg.stop_creep, cfg.stop_hold), onpolicy=onpolicy,
+        learner = Learner(factory=functools.partial(load_learner, str(policy), 1, cfg.speed_control,
+                                                    stop_release=cfg.stop_release, stop_creep=cfg.stop_creep,
+                                                    stop_hold=cfg.stop_hold, stop_gate=cfg.stop_gate),
+                          onpolicy=onpolicy,
                           identity=str(policy.resolve()), min_world_seed=BENCH_WORLD_SEED_LIMIT,
                           reject_route=BenchmarkRoutes(cfg.town))
         # No steering noise (the learner makes its own mistakes); the second before a collision is not a label.
@@ -495,6 +502,7 @@ def run(args: argparse.Namespace) -> int:
             threads=args.threads, train_args=_train_args(args.train_arg),
             round0=args.round0, expert_data=args.expert_data, speed_control=args.speed_control,
             stop_release=args.stop_release, stop_creep=args.stop_creep, stop_hold=args.stop_hold,
+            stop_gate=args.stop_gate,
             round_vehicles=args.round_vehicles, round_pedestrians=args.round_pedestrians,
             expert_args=_expert_args(args.expert_arg), guidance_reference=args.guidance_reference,
         )

@@ -22,7 +22,13 @@ from yawil.data.schema import LEAD_RANGE
 from yawil.expert import ExpertConfig, hazard_speed
 from yawil.guidance import COMMAND_NOISE_MODES, YAW_NOISE_MODES, CommandNoise
 from yawil.models.base import AUX_NAMES, LEAD_STOP_FIRES
-from yawil.policy.speed import check_stop_creep, check_stop_hold, check_stop_release, speed_control_mode
+from yawil.policy.speed import (
+    check_stop_creep,
+    check_stop_gate,
+    check_stop_hold,
+    check_stop_release,
+    speed_control_mode,
+)
 from yawil.sim.types import DT, Control
 
 
@@ -129,8 +135,11 @@ class StopRelease:
         self.stood = self.creep_left = 0
         self.moved = 0.0
 
-    def released(self, speed: float, holding: bool) -> bool:
-        """One step: whether the class is ignored now. `holding`: it fires while the head would drive."""
+    def released(self, speed: float, holding: bool, clear: bool = True) -> bool:
+        """One step: whether the class is ignored now. `holding`: it fires while the head would drive; `clear`:
+        the head's lead-distance regression sees no car close (`DriveSettings.stop_gate`): a standing step that is
+        not clear neither counts toward the patience nor resets it (the regression's odd frame on a false alarm
+        must not restart the wait)."""
         if self.creep_left > 0:
             self.moved += max(0.0, speed) * self.dt
             if self.creep_distance > 0 and self.moved >= self.creep_distance:
@@ -138,7 +147,10 @@ class StopRelease:
             else:
                 self.creep_left -= 1
                 return True
-        self.stood = self.stood + 1 if (holding and speed < STANDING) else 0
+        if not (holding and speed < STANDING):
+            self.stood = 0
+        elif clear:
+            self.stood += 1
         if self.stood >= round(self.patience / self.dt):
             self.stood, self.creep_left, self.moved = 0, round(self.creep / self.dt) - 1, 0.0
             return True
@@ -201,7 +213,8 @@ class DriveSettings:
 
     `speed_control`: None (the network's throttle and brake), "target", "lead" or "stop" (`yawil.policy.speed`);
     `stop_release`: seconds (with "stop"); `stop_creep`: metres after which a release's creep ends (0: its 2 s);
-    `stop_hold`: seconds the stop outlasts the class (`StopHold`); `yaw_noise_deg` / `command_noise_p` with their readings (Table II,
+    `stop_hold`: seconds the stop outlasts the class (`StopHold`); `stop_gate`: metres of predicted lead distance
+    under which a stand does not count toward the release (0: every stand counts); `yaw_noise_deg` / `command_noise_p` with their readings (Table II,
     `yawil.guidance`); `post`: the clipping rules. A zoo model's card names the settings its figures were
     measured with (`card.json` "drive"), and `yawil.agent.Agent.from_checkpoint("zoo:NAME")` uses them.
     """
@@ -210,6 +223,7 @@ class DriveSettings:
     stop_release: float = 0.0
     stop_creep: float = 0.0
     stop_hold: float = 0.0
+    stop_gate: float = 0.0
     yaw_noise_deg: float = 0.0
     command_noise_p: float = 0.0
     yaw_noise_mode: str = "raw"
@@ -221,6 +235,7 @@ class DriveSettings:
         object.__setattr__(self, "stop_release", check_stop_release(self.stop_release, self.speed_control))
         object.__setattr__(self, "stop_creep", check_stop_creep(self.stop_creep, self.stop_release))
         object.__setattr__(self, "stop_hold", check_stop_hold(self.stop_hold, self.speed_control))
+        object.__setattr__(self, "stop_gate", check_stop_gate(self.stop_gate, self.stop_release))
         if isinstance(self.yaw_noise_deg, bool) or not float(self.yaw_noise_deg) >= 0.0:
             raise ValueError(f"yaw_noise_deg={self.yaw_noise_deg!r}: expected >= 0 degrees")
         if isinstance(self.command_noise_p, bool) or not 0.0 <= float(self.command_noise_p) <= 1.0:
@@ -266,7 +281,8 @@ class DriveSettings:
     def as_dict(self) -> dict[str, Any]:
         """The settings that differ from the defaults, by name (a card's "drive", a record's options)."""
         out: dict[str, Any] = {}
-        for name in ("speed_control", "stop_release", "stop_creep", "stop_hold", "yaw_noise_deg", "command_noise_p"):
+        for name in ("speed_control", "stop_release", "stop_creep", "stop_hold", "stop_gate", "yaw_noise_deg",
+                     "command_noise_p"):
             if getattr(self, name):
                 out[name] = getattr(self, name)
         if self.yaw_noise_deg:
@@ -311,7 +327,8 @@ class DriveSettings:
                 fires = state.stop_hold(fires)
             if state.stop_release is not None:  # ticked on every step, so a creep runs its course
                 alone = fires and head >= SpeedControl.stop_speed  # the head itself would drive
-                fires = fires and not state.stop_release.released(ego_speed, alone)
+                clear = lead_distance >= self.stop_gate  # the regression sees no car close (0: always)
+                fires = fires and not state.stop_release.released(ego_speed, alone, clear)
             if fires:
                 target = 0.0
         if state.speed_control is not None:

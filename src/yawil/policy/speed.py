@@ -7,13 +7,15 @@ None: the network's own throttle and brake; "target": a PI controller on the aux
 "stop": the same with the target set to 0 while the lead-stop output (a model built with lead_stop=true) says a
 standing vehicle is close ahead (probability over 0.5); with a release (`stop_release` seconds, 0 = never) the
 output is ignored for a short creep once it alone has held the car standing that long (`yawil.agent.StopRelease`);
-with a hold (`stop_hold` seconds) the stop outlasts the output by that long (`yawil.policy.drive.StopHold`).
+with a hold (`stop_hold` seconds) the stop outlasts the output by that long (`yawil.policy.drive.StopHold`); with
+a gate (`stop_gate` metres) a stand counts toward the release only while the predicted lead distance is that far.
 """
 
 from __future__ import annotations
 
 import argparse
 import math
+from typing import Any
 
 SPEED_CONTROLS: tuple[str, ...] = ("target", "lead", "stop")
 ENGINES: tuple[str, ...] = ("auto", "torch", "openvino", "onnxruntime")
@@ -44,18 +46,29 @@ def check_stop_release(seconds: float, mode: str | None) -> float:
     return _stop_seconds("stop_release", seconds, mode, "never release")
 
 
-def check_stop_creep(metres: float, release: float) -> float:
-    """`stop_creep` as a float, refused in one line unless >= 0 m and (when > 0) with a stop release."""
+def _release_metres(name: str, metres: float, release: float, zero: str) -> float:
+    """A setting of the stop release in metres as a float, refused in one line unless >= 0 m and (when > 0) with
+    a release."""
     if isinstance(metres, bool) or not isinstance(metres, (int, float)) or not (math.isfinite(metres) and metres >= 0):
-        raise ValueError(f"stop_creep={metres!r}: expected metres >= 0 (0: the creep lasts its 2 s)")
+        raise ValueError(f"{name}={metres!r}: expected metres >= 0 (0: {zero})")
     if metres and not release:
-        raise ValueError(f"stop_creep={metres!r} applies to a stop release (--stop-release SECONDS > 0)")
+        raise ValueError(f"{name}={metres!r} applies to a stop release (--stop-release SECONDS > 0)")
     return float(metres)
+
+
+def check_stop_creep(metres: float, release: float) -> float:
+    """`stop_creep` as a float (`_release_metres`)."""
+    return _release_metres("stop_creep", metres, release, "the creep lasts its 2 s")
 
 
 def check_stop_hold(seconds: float, mode: str | None) -> float:
     """`stop_hold` as a float (`_stop_seconds`)."""
     return _stop_seconds("stop_hold", seconds, mode, "no hold")
+
+
+def check_stop_gate(metres: float, release: float) -> float:
+    """`stop_gate` as a float (`_release_metres`)."""
+    return _release_metres("stop_gate", metres, release, "every stand counts")
 
 
 def add_speed_control_arguments(p: argparse.ArgumentParser, what: str = "") -> None:
@@ -74,6 +87,18 @@ def add_speed_control_arguments(p: argparse.ArgumentParser, what: str = "") -> N
     p.add_argument("--stop-creep", type=float, default=0.0, metavar="METRES",
                    help="with --stop-release: the creep also ends, and the lead-stop output counts again, once the car "
                         "has moved this far (default 0: the creep lasts its 2 s)")
+    p.add_argument("--stop-gate", type=float, default=0.0, metavar="METRES",
+                   help="with --stop-release: a stand counts toward the release only while the predicted lead distance "
+                        "is at least this far, so a car the net itself places close ahead is not crept into (default "
+                        "0: every stand counts)")
+
+
+def given_drive(args: argparse.Namespace) -> dict[str, Any]:
+    """--speed-control and the stop release's options (`add_speed_control_arguments`) exactly as given, as
+    keyword options of `yawil.bench.runner.AgentSpec` and `yawil.agent.Agent.from_checkpoint`."""
+    return {"speed_control": args.speed_control, "stop_release": args.stop_release,
+            "stop_creep": getattr(args, "stop_creep", 0.0), "stop_hold": getattr(args, "stop_hold", 0.0),
+            "stop_gate": getattr(args, "stop_gate", 0.0)}
 
 
 def add_engine_arguments(p: argparse.ArgumentParser, batched: bool = False) -> None:

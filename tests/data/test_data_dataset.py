@@ -36,7 +36,7 @@ def test_sample_matches_the_file(root: Path) -> None:
         "image": ((3, 88, 200), torch.uint8), "speed": ((1,), torch.float32), "action": ((3,), torch.float32),
         "command": ((), torch.int64), "guidance_yaw": ((K,), torch.float32), "guidance_xy": ((2 * K,), torch.float32),
         "guidance_sim_yaw": ((K,), torch.float32), "episode": ((), torch.int64), "frame": ((), torch.int64),
-        "privileged": ((4,), torch.float32),
+        "privileged": ((5,), torch.float32),
     }  # fmt: skip
     with open_episode(root / "episodes" / "ep_000001.h5") as ep:
         rec = ep[3]

@@ -227,3 +227,31 @@ def test_lead_stop_labels_and_their_weighted_cross_entropy() -> None:
     y = close[:3]
     bce = -(LEAD_STOP_POS_WEIGHT * y * p.log() + (1 - y) * (1 - p).log())
     assert five * (count + 3) == pytest.approx(four * count + float(bce.sum()), rel=1e-5)
+
+
+def test_pedestrian_stops_join_the_lead_stop_class_when_asked() -> None:
+    """`stop_pedestrians`: a frame where the expert stops for a pedestrian (reason, target under 1 m/s) is a
+    positive of the lead-stop output, even with no vehicle known; without the flag the labels are as before."""
+    from yawil.data.schema import SPEED_REASONS
+    from yawil.learn.loss import lead_stop_targets
+
+    nan, ped, cruise = math.nan, float(SPEED_REASONS.index("pedestrian")), float(SPEED_REASONS.index("cruise"))
+    # a pedestrian stop; a pedestrian slow-down (target 3 m/s); a cruise frame; a pedestrian stop, lead unknown
+    privileged = torch.tensor([[0.0, 50.0, 0.0, 0.0, ped], [3.0, 50.0, 0.0, 0.0, ped],
+                               [5.0, 50.0, 0.0, 0.0, cruise], [0.5, nan, nan, -1.0, ped]])
+    assert lead_stop_targets(privileged)[0].tolist() == [0.0, 0.0, 0.0, 0.0]
+    close, seen = lead_stop_targets(privileged, pedestrians=True)
+    assert close.tolist() == [1.0, 0.0, 0.0, 1.0] and seen.tolist() == [True, True, True, True]
+    with pytest.raises(ValueError, match="fifth column"):
+        lead_stop_targets(privileged[:, :4], pedestrians=True)
+
+
+def test_stop_pedestrians_needs_the_aux_loss_and_the_lead_stop_output(tmp_path: Path) -> None:
+    from yawil.learn.config import TrainConfig
+    from yawil.learn.setup import check_model_fits
+
+    with pytest.raises(ValueError, match="stop_pedestrians"):
+        TrainConfig(stop_pedestrians=True)
+    with pytest.raises(ValueError, match="lead_stop=true"):
+        check_model_fits(TrainConfig(stop_pedestrians=True, aux_weight=0.5, model_args={"aux": True}))
+    check_model_fits(TrainConfig(stop_pedestrians=True, aux_weight=0.5, model_args={"aux": True, "lead_stop": True}))

@@ -112,8 +112,8 @@ class DrivingDataset(Dataset[dict[str, torch.Tensor]]):
 
     A sample is a dict of tensors: image uint8 [3, 88, 200], speed float32 [1], action float32 [3]
     (steer, throttle, brake), command int64 [] (branch index), guidance_yaw/xy/sim_yaw float32 [K]/[2K]/[K],
-    episode and frame int64 [], privileged float32 [4] (target_speed m/s, lead_distance m, lead_speed m/s,
-    light_ahead; NaN or -1 where unknown). Samples are ordered by root, then manifest order, then row.
+    episode and frame int64 [], privileged float32 [5] (target_speed m/s, lead_distance m, lead_speed m/s,
+    light_ahead, speed_reason index; NaN or -1 where unknown). Samples are ordered by root, then manifest order, then row.
     """
 
     def __init__(self, roots: PathLike | Sequence[PathLike], episodes: Sequence[int] | None = None) -> None:
@@ -223,7 +223,7 @@ class DrivingDataset(Dataset[dict[str, torch.Tensor]]):
             "frame": torch.tensor(int(lab["frame"][i]), dtype=torch.int64),
             # schema-2 privileged labels (NaN / -1: unknown, e.g. a schema-1 file): targets of aux heads
             "privileged": torch.tensor([lab["target_speed"][i], lab["lead_distance"][i], lab["lead_speed"][i],
-                                        lab["light_ahead"][i]], dtype=torch.float32),
+                                        lab["light_ahead"][i], lab["speed_reason"][i]], dtype=torch.float32),
         }
 
     def close(self) -> None:

@@ -16,6 +16,13 @@ import os
 import sys
 from typing import Any
 
+def _true_false(text: str) -> bool:
+    """'true' / 'false' (a YAML-like 'yes' or '1' is refused, as in config files)."""
+    if text not in ("true", "false"):
+        raise argparse.ArgumentTypeError(f"expected true or false, got {text!r}")
+    return text == "true"
+
+
 # option -> (TrainConfig field, type, help). Every TrainConfig field has one (tests/learn/test_train.py checks).
 _OPTIONS: tuple[tuple[str, str, Any, str], ...] = (
     ("--epochs", "epochs", int, "epochs (paper: 100)"),
@@ -44,6 +51,8 @@ _OPTIONS: tuple[tuple[str, str, Any, str], ...] = (
      "probability per training sample that the speed input is replaced by its mean (inertia; default 0)"),
     ("--aux-weight", "aux_weight", float,
      "weight of the aux loss on the expert's privileged labels (needs --model-arg aux=true; default 0)"),
+    ("--stop-pedestrians", "stop_pedestrians", _true_false,
+     "true: the lead-stop output also learns the expert's stops for pedestrians (default false)"),
     ("--aux-loss", "aux_loss", str,
      "same (default: --loss) | l1 | mse | smooth_l1: criterion of the aux head's regression terms"),
     ("--brake-loss", "brake_loss", str,

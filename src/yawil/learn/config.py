@@ -74,6 +74,11 @@ class TrainConfig:
     # or one of LOSSES. Why "mse": under L1 a head predicts the median, and the frames that matter (a lead
     # vehicle close ahead: 4 % of them) never move the median; the mean they do (docs/experiments.md).
     aux_loss: str = "same"
+    # The lead-stop output's positives also include the frames where the expert stops for a pedestrian (its
+    # reason `pedestrian`, its target under STOP_TARGET): one "a road user stands in my way" class. Why: the dense
+    # cell's pedestrian collisions come at cruise speed, the head never slowing (docs/experiments.md, 2026-12-07
+    # second session); a rare event is what a weighted class learns, as the vehicle stop did. Ours.
+    stop_pedestrians: bool = False
     # "same": the brake is one of the three action components under `loss`; "bce": binary cross-entropy of
     # the (sigmoid) brake output against the expert's brake. L1's optimum is the conditional median, which
     # for a brake pressed on ~7 % of the frames is 0 wherever the image leaves doubt; BCE's is the mean.
@@ -141,6 +146,9 @@ class TrainConfig:
         need(_is_num(self.aux_weight) and self.aux_weight >= 0.0, "aux_weight", "a number >= 0")
         if self.alpha == 0 and self.beta == 0 and self.aux_weight == 0:  # the steps would move no weight, exit 0
             raise ValueError("train config: every loss weight is 0 (alpha, beta, aux_weight): nothing would be learned")
+        need(isinstance(self.stop_pedestrians, bool), "stop_pedestrians", "true or false")
+        need(not self.stop_pedestrians or self.aux_weight > 0, "stop_pedestrians",
+             "false unless aux_weight > 0 (it labels the aux head's lead-stop output)")
         need(_is_num(self.ema) and 0.0 <= self.ema < 1.0, "ema", "a decay in [0, 1) (0: no weight average)")
         need(self.init_from is None or (isinstance(self.init_from, str) and bool(self.init_from)), "init_from",
              "None or a checkpoint path")

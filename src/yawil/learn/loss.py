@@ -8,6 +8,7 @@ from typing import Any
 import torch
 from torch import Tensor
 
+from yawil.data.schema import SPEED_REASONS
 from yawil.learn.config import TrainConfig
 from yawil.learn.sampling import Batch
 from yawil.models.base import AUX_NAMES, LEAD_STOP_DISTANCE, LEAD_STOP_SPEED
@@ -50,7 +51,8 @@ def compute_loss(
         if batch.privileged is None or norm is None:
             raise ValueError("aux_weight > 0 needs the privileged labels of the samples (schema-2 data) and the norm")
         aux_criterion = cfg.loss if cfg.aux_loss == "same" else cfg.aux_loss
-        loss = loss + cfg.aux_weight * aux_loss(out.aux.float(), batch.privileged, norm, aux_criterion)
+        loss = loss + cfg.aux_weight * aux_loss(out.aux.float(), batch.privileged, norm, aux_criterion,
+                                                cfg.stop_pedestrians)
     return loss, pred, out
 
 
@@ -66,7 +68,7 @@ def aux_targets(privileged: Tensor, norm: Norm) -> tuple[Tensor, Tensor]:
     """(targets in the aux head's scale, mask of known ones), both [B, 4]; see models.base.AUX_NAMES."""
     from yawil.data.schema import LEAD_RANGE
 
-    ts, ld, ls, light = privileged.unbind(dim=1)
+    ts, ld, ls, light = privileged[:, :4].unbind(dim=1)  # the fifth column, the expert's reason, is no target
     target = torch.stack([norm.speed(ts[:, None])[:, 0], ld / LEAD_RANGE, norm.speed(ls[:, None])[:, 0], light], dim=1)
     known = torch.stack([ts.isfinite(), ld.isfinite(), ls.isfinite(), light >= 0], dim=1)
     return torch.where(known, target, torch.zeros_like(target)), known
@@ -77,17 +79,29 @@ def aux_targets(privileged: Tensor, norm: Norm) -> tuple[Tensor, Tensor]:
 LEAD_STOP_POS_WEIGHT = 10.0
 
 
-def lead_stop_targets(privileged: Tensor) -> tuple[Tensor, Tensor]:
-    """(1 where a vehicle under LEAD_STOP_SPEED is within LEAD_STOP_DISTANCE ahead, mask of known), both [B]."""
+# The expert's target under which a pedestrian frame is a stop (`stop_pedestrians`; validation's STOP_TARGET).
+PEDESTRIAN_STOP_TARGET = 1.0  # m/s
+PEDESTRIAN = float(SPEED_REASONS.index("pedestrian"))
+
+
+def lead_stop_targets(privileged: Tensor, pedestrians: bool = False) -> tuple[Tensor, Tensor]:
+    """(1 where a vehicle under LEAD_STOP_SPEED is within LEAD_STOP_DISTANCE ahead, mask of known), both [B];
+    with `pedestrians` also 1 where the expert stops for a pedestrian (its reason, a target under
+    PEDESTRIAN_STOP_TARGET: privileged's fifth column)."""
     ld, ls = privileged[:, 1], privileged[:, 2]
     known = ld.isfinite() & ls.isfinite()
     close = known & (ld < LEAD_STOP_DISTANCE) & (ls < LEAD_STOP_SPEED)
+    if pedestrians:
+        if privileged.shape[1] < 5:
+            raise ValueError("stop_pedestrians needs the expert's reason of each sample (privileged's fifth column)")
+        ped = (privileged[:, 4] == PEDESTRIAN) & (privileged[:, 0] < PEDESTRIAN_STOP_TARGET)
+        close, known = close | ped, known | ped
     return close.float(), known
 
 
-def aux_loss(aux: Tensor, privileged: Tensor, norm: Norm, loss: str = "l1") -> Tensor:
+def aux_loss(aux: Tensor, privileged: Tensor, norm: Norm, loss: str = "l1", pedestrians: bool = False) -> Tensor:
     """Mean over the known labels: regression terms with the action loss's criterion, BCE for the light and,
-    for heads with the lead-stop output (models.base.aux_outputs), weighted BCE for it."""
+    for heads with the lead-stop output (models.base.aux_outputs), weighted BCE for it (`lead_stop_targets`)."""
     target, known = aux_targets(privileged, norm)
     crit = _criterion(loss)
     w = known.float()
@@ -95,7 +109,7 @@ def aux_loss(aux: Tensor, privileged: Tensor, norm: Norm, loss: str = "l1") -> T
     bce = torch.nn.functional.binary_cross_entropy_with_logits(aux[:, 3], target[:, 3], reduction="none") * w[:, 3]
     total, count = reg.sum() + bce.sum(), w.sum()
     if aux.shape[1] > len(AUX_NAMES):
-        close, seen = lead_stop_targets(privileged)
+        close, seen = lead_stop_targets(privileged, pedestrians)
         stop = torch.nn.functional.binary_cross_entropy_with_logits(
             aux[:, len(AUX_NAMES)], close, reduction="none",
             pos_weight=torch.tensor(LEAD_STOP_POS_WEIGHT, device=aux.device))  # fmt: skip

@@ -28,7 +28,7 @@ class Batch:
     command: Tensor | None  # [B] int64 branch index
     action: Tensor  # [B, 3] targets
     speed_raw: Tensor  # [B, 1] m/s
-    privileged: Tensor | None = None  # [B, 4] m/s, m, m/s, 0/1 (NaN / -1 unknown): aux-head targets
+    privileged: Tensor | None = None  # [B, 5] m/s, m, m/s, 0/1, reason (NaN / -1 unknown): aux-head targets
 
 
 def prepare_batch(

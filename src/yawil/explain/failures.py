@@ -31,7 +31,7 @@ import sys
 import time
 from collections import Counter, deque
 from collections.abc import Mapping, Sequence
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field, fields, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
 
@@ -104,14 +104,14 @@ def load_agent_of(info: Mapping[str, Any], checkpoint: str | None = None, where:
     ValueError in one line when it cannot be loaded."""
     from yawil.agent import Agent
     from yawil.bench.runner import EXPERT, AgentSpec
+    from yawil.policy.drive import DriveSettings
 
     opts = dict(info.get("agent_options") or {})
     name = checkpoint or str(info["agent"])
     if name == EXPERT:
         raise ValueError(f"{where}: the agent is the expert: it has no heat maps to explain (give --checkpoint to "
                          "explain a learned agent's drive of the same episodes)")
-    kw = {k: opts[k] for k in ("yaw_noise_deg", "command_noise_p", "yaw_noise_mode", "command_noise_mode",
-                               "speed_control", "stop_release", "stop_creep", "stop_hold", "stop_gate") if k in opts}
+    kw = {f.name: opts[f.name] for f in fields(DriveSettings) if f.name != "post" and f.name in opts}
     label = str(opts.get("engine", "auto"))
     engine, _, precision = label.partition("-")
     spec = AgentSpec(name, engine=engine or "auto", **kw)

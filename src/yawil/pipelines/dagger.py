@@ -118,22 +118,15 @@ class DaggerConfig:
             mode = speed_control_mode(self.speed_control)
         except ValueError:
             need(False, "speed_control", f"true, false or one of {', '.join(SPEED_CONTROLS)}")
-        try:
-            check_stop_release(self.stop_release, mode)
-        except ValueError:
-            need(False, "stop_release", "seconds >= 0, > 0 only with speed_control 'stop'")
-        try:
-            check_stop_creep(self.stop_creep, self.stop_release)
-        except ValueError:
-            need(False, "stop_creep", "metres >= 0, > 0 only with a stop_release")
-        try:
-            check_stop_hold(self.stop_hold, mode)
-        except ValueError:
-            need(False, "stop_hold", "seconds >= 0, > 0 only with speed_control 'stop'")
-        try:
-            check_stop_gate(self.stop_gate, self.stop_release)
-        except ValueError:
-            need(False, "stop_gate", "metres >= 0, > 0 only with a stop_release")
+        seconds, metres = "seconds >= 0, > 0 only with speed_control 'stop'", "metres >= 0, > 0 only with a stop_release"
+        for name, check, given, want in (("stop_release", check_stop_release, mode, seconds),
+                                         ("stop_creep", check_stop_creep, self.stop_release, metres),
+                                         ("stop_hold", check_stop_hold, mode, seconds),
+                                         ("stop_gate", check_stop_gate, self.stop_release, metres)):
+            try:
+                check(getattr(self, name), given)  # type: ignore[operator]
+            except ValueError:
+                need(False, name, want)
         need(isinstance(self.expert_args, dict), "expert_args", "a mapping of ExpertConfig settings")
         for name in ("round_vehicles", "round_pedestrians"):
             v = getattr(self, name)

@@ -206,6 +206,28 @@ def test_a_finished_run_may_grow_rounds_with_their_own_traffic(tmp_path: Path) -
         DaggerConfig(round_vehicles=((10, 5),))
 
 
+def test_a_finished_run_may_grow_rounds_driven_otherwise(tmp_path: Path) -> None:
+    """The learner's drive may change for added rounds only; the finished rounds' stage markers keep the drive
+    that collected them, so dagger.json taking the new one loses no history."""
+    from dataclasses import replace
+
+    aux = {"model_args": {"aux": True}}
+    cfg = DaggerConfig(expert_frames=30, rounds=1, speed_control="stop", stop_release=10.0, train_args=aux)
+    run = DaggerRun(tmp_path, cfg)
+    run.check_config()
+    run.stage("data_01").parent.mkdir(parents=True)
+    run.stage("data_01").write_text(json.dumps({"frames": 5}))  # a round finished before markers held the drive
+    gated = replace(cfg, stop_hold=1.0, stop_gate=25.0)
+    with pytest.raises(ValueError, match=r"stop_gate: 0.0 -> 25.0.*give --rounds 2"):
+        DaggerRun(tmp_path, gated).check_config()  # round 1 was driven without the gate
+    DaggerRun(tmp_path, replace(gated, rounds=2)).check_config()
+    assert json.loads((tmp_path / "dagger.json").read_text())["stop_gate"] == 25.0
+    marker = json.loads(run.stage("data_01").read_text())
+    assert marker["frames"] == 5 and marker["drive"] == {"speed_control": "stop", "stop_release": 10.0,
+                                                         "stop_creep": 0.0, "stop_hold": 0.0, "stop_gate": 0.0}
+    assert DaggerRun(tmp_path, replace(gated, rounds=2)).drive()["stop_gate"] == 25.0
+
+
 def test_the_dagger_learner_drives_as_benched(tiny_checkpoint: Any) -> None:
     """With speed_control the learner's throttle and brake come from its aux head's target speed."""
     from yawil.pipelines.dagger import load_learner
@@ -229,6 +251,8 @@ def test_a_tiny_dagger_run_end_to_end_and_resumed(tmp_path: Path) -> None:
     assert final == out / "train" / "round_01" / "last.pt" and final.is_file()
     m = read_manifest(out / "data" / "round_01")
     assert m.frames >= 20 and m.config["learner"]["checkpoint"].endswith("round_00/last.pt")
+    assert m.config["learner"]["drive"]["speed_control"] is False  # the drive that collected the round
+    assert json.loads((out / "stages" / "data_01.json").read_text())["drive"] == m.config["learner"]["drive"]
     assert (list(m.config["collector"]["vehicles"]), list(m.config["collector"]["pedestrians"])) == ([3, 3], [0, 1])
     assert m.config["guidance"]["reference"] == "ego" == read_manifest(out / "data" / "expert").config["guidance"]["reference"]
     with open_episode(m.path_of(m.episodes[0])) as ep:

@@ -63,6 +63,8 @@ def dataset_config(cfg: CollectConfig, guidance: GuidanceConfig, expert_config: 
     if learner is not None:
         d["learner"] = {"checkpoint": learner.identity, "onpolicy": asdict(learner.onpolicy),
                         "min_world_seed": learner.min_world_seed}
+        if learner.drive:  # only when given, so that datasets collected before it still resume
+            d["learner"]["drive"] = dict(learner.drive)
     return d
 
 
@@ -89,12 +91,14 @@ class Learner:
 
     `factory` makes the learner in each process (picklable: a module-level function or a partial of one);
     `reject_route` (picklable too) turns down routes that must not be driven; world seeds start at
-    `min_world_seed`. The dataset config records `identity` (the checkpoint) and `onpolicy`.
+    `min_world_seed`. The dataset config records `identity` (the checkpoint), `onpolicy` and `drive` (the
+    learner's drive settings, where given: a resume with another drive is refused, as with another checkpoint).
     """
 
     factory: Callable[[], Driver]
     onpolicy: OnPolicy
     identity: str
+    drive: dict[str, Any] = field(default_factory=dict)
     min_world_seed: int = 0
     reject_route: Callable[[Route], bool] | None = None
 

@@ -40,7 +40,7 @@ from yawil.policy.speed import (
     check_stop_release,
     speed_control_mode,
 )
-from yawil.stages import read_marker, run_stage
+from yawil.stages import read_marker, run_stage, write_marker
 
 TRAIN_MODES = ("finetune", "scratch")
 # Benchmark episodes use world seed 1000 * seed + route id (yawil.bench.suites.Episode.world_seed), far below this.
@@ -176,6 +176,10 @@ class DaggerConfig:
 
 # settings given per round (the last repeats): a finished run may grow rounds whose values differ from here on
 PER_ROUND = ("beta", "round_vehicles", "round_pedestrians")
+# the learner's drive: a finished run may grow rounds driven otherwise (a better drive found after its rounds
+# reaches other states); each round's dataset and stage marker record the drive that collected it, and a round
+# collected in part refuses another (its dataset's config differs)
+DRIVE = ("speed_control", "stop_release", "stop_creep", "stop_hold", "stop_gate")
 
 
 def _of_round(values: Sequence[Any], r: int) -> Any:
@@ -272,7 +276,7 @@ class DaggerRun:
         if saved is not None:
             # more rounds may be added to a finished run, with their own per-round values (the rounds it has keep
             # theirs); where the episodes run (the executor) changes no result
-            growable = {"rounds", "executor", "ray_address", *PER_ROUND}
+            growable = {"rounds", "executor", "ray_address", *PER_ROUND, *DRIVE}
             defaults = DaggerConfig().to_dict()  # a setting added later reads as its default in older folders
             saved = {**{k: v for k, v in defaults.items() if k not in saved}, **saved}
             diff = sorted(k for k in set(saved) | set(mine) if k not in growable and saved.get(k) != mine.get(k))
@@ -284,8 +288,23 @@ class DaggerRun:
                     f"{path}: this folder holds a DAgger run with other settings ({', '.join(f'{k}: {saved.get(k)!r} -> {mine.get(k)!r}' for k in diff)}); "
                     "use another --out"
                 )
+            redrive = [k for k in DRIVE if saved.get(k) != mine.get(k)]
+            if redrive and int(mine["rounds"]) <= had:
+                raise ValueError(
+                    f"{path}: the learner's drive ({', '.join(f'{k}: {saved.get(k)!r} -> {mine.get(k)!r}' for k in redrive)}) "
+                    f"may change only for rounds added to the run (it has {had}; give --rounds {had + 1} or more)")
+            if redrive:
+                self.keep_drive({k: saved.get(k) for k in DRIVE}, had)
         self.out.mkdir(parents=True, exist_ok=True)
         write_json_atomic(path, mine)
+
+    def keep_drive(self, drive: dict[str, Any], rounds: int) -> None:
+        """Before dagger.json takes a new drive, the finished rounds' stage markers that do not say which drive
+        collected them (written before markers held it) are given the one they had, so the run keeps its history."""
+        for r in range(1, rounds + 1):
+            marker = read_marker(self.stage(f"data_{r:02d}"))
+            if marker is not None and "drive" not in marker:
+                write_marker(self.stage(f"data_{r:02d}"), {**marker, "drive": drive})
 
     def run(self) -> Path:
         from yawil.locking import folder_lock
@@ -362,11 +381,9 @@ class DaggerRun:
         onpolicy = OnPolicy(round=r, beta=cfg.beta_of(r), segment_seconds=cfg.segment_seconds,
                             takeover_lateral=cfg.takeover_lateral, takeover_decel=cfg.takeover_decel,
                             takeover_stall=cfg.takeover_stall, takeover_seconds=cfg.takeover_seconds)
-        learner = Learner(factory=functools.partial(load_learner, str(policy), 1, cfg.speed_control,
-                                                    stop_release=cfg.stop_release, stop_creep=cfg.stop_creep,
-                                                    stop_hold=cfg.stop_hold, stop_gate=cfg.stop_gate),
-                          onpolicy=onpolicy,
-                          identity=str(policy.resolve()), min_world_seed=BENCH_WORLD_SEED_LIMIT,
+        drive = self.drive()
+        learner = Learner(factory=functools.partial(load_learner, str(policy), 1, **drive), onpolicy=onpolicy,
+                          identity=str(policy.resolve()), drive=drive, min_world_seed=BENCH_WORLD_SEED_LIMIT,
                           reject_route=BenchmarkRoutes(cfg.town))
         # No steering noise (the learner makes its own mistakes); the second before a collision is not a label.
         traffic: dict[str, Any] = dict(cfg.traffic_of(r))  # only what is set: collect's defaults for the rest
@@ -378,7 +395,11 @@ class DaggerRun:
         self.log(f"round {r}: {s.frames_written} frames stored this run; frames driven by "
                  f"{json.dumps(s.drivers)}; {s.takeovers} takeovers; outcomes {json.dumps(s.outcomes)}")
         return {"frames": s.dataset_frames, "drivers": s.drivers, "takeovers": s.takeovers, "outcomes": s.outcomes,
-                "policy": str(policy)}
+                "policy": str(policy), "drive": drive}
+
+    def drive(self) -> dict[str, Any]:
+        """The learner's drive settings, as `load_learner` and `yawil bench` take them."""
+        return {k: getattr(self.cfg, k) for k in DRIVE}
 
     def train(self, r: int) -> dict[str, Any]:
         from yawil.learn.config import TrainConfig

@@ -68,10 +68,10 @@ def test_zoo_names_resolve_everywhere_a_checkpoint_is_taken(packed: Path, capsys
     assert spec.content_hash() == zoo.read_card("tiny")["weights_sha256"]
     args = type("A", (), {"agent": "zoo:tiny", "speed_control": False, "stop_release": 0.0})()
     assert drive_options(args) == {"speed_control": "stop", "stop_release": 10.0, "stop_creep": 0.0,
-                                   "stop_hold": 0.0, "stop_gate": 0.0}  # the card's
+                                   "stop_hold": 0.0, "stop_gate": 0.0, "light_hold": 0.0}  # the card's
     args.speed_control = "target"
     assert drive_options(args) == {"speed_control": "target", "stop_release": 0.0, "stop_creep": 0.0, "stop_hold": 0.0,
-                                   "stop_gate": 0.0}
+                                   "stop_gate": 0.0, "light_hold": 0.0}
     assert main(["models", "--zoo"]) == 0 and "tiny" in capsys.readouterr().out
     assert main(["zoo", "check"]) == 0 and "zoo:tiny" in capsys.readouterr().out
     with pytest.raises(SystemExit, match=r"no such zoo model \(the zoo has: tiny\)"):

@@ -224,7 +224,8 @@ def test_a_finished_run_may_grow_rounds_driven_otherwise(tmp_path: Path) -> None
     assert json.loads((tmp_path / "dagger.json").read_text())["stop_gate"] == 25.0
     marker = json.loads(run.stage("data_01").read_text())
     assert marker["frames"] == 5 and marker["drive"] == {"speed_control": "stop", "stop_release": 10.0,
-                                                         "stop_creep": 0.0, "stop_hold": 0.0, "stop_gate": 0.0}
+                                                         "stop_creep": 0.0, "stop_hold": 0.0, "stop_gate": 0.0,
+                                                         "light_hold": 0.0}
     assert DaggerRun(tmp_path, replace(gated, rounds=2)).drive()["stop_gate"] == 25.0
 
 

@@ -27,6 +27,7 @@ from yawil.locking import folder_lock
 from yawil.policy.speed import (
     check_stop_creep,
     check_stop_gate,
+    check_light_hold,
     check_stop_hold,
     check_stop_release,
     given_drive,
@@ -67,6 +68,7 @@ class AgentSpec:
     stop_creep: float = 0.0  # m after which the release's creep ends (yawil.policy.drive.StopRelease; 0: its 2 s)
     stop_hold: float = 0.0  # s the "stop" mode's stop outlasts its class (yawil.policy.drive.StopHold; 0: none)
     stop_gate: float = 0.0  # m of predicted lead distance under which a stand does not count toward the release
+    light_hold: float = 0.0  # s a standing car at most waits while the light output fires (LightHold; 0: off)
 
     @property
     def is_expert(self) -> bool:
@@ -98,6 +100,8 @@ class AgentSpec:
             opts["stop_hold"] = float(self.stop_hold)
         if self.stop_gate:  # only when set, so the records of earlier runs still match
             opts["stop_gate"] = float(self.stop_gate)
+        if self.light_hold:  # only when set, so the records of earlier runs still match
+            opts["light_hold"] = float(self.light_hold)
         if self.device != "cpu" and not self.is_expert:  # only when set, so the records of earlier runs still match
             opts["device"] = self.device
         if not self.is_expert:  # the engine and its precision change the numbers, so a resume must use the same
@@ -118,6 +122,7 @@ class AgentSpec:
         release = check_stop_release(self.stop_release, speed_control_mode(self.speed_control))
         check_stop_creep(self.stop_creep, release), check_stop_gate(self.stop_gate, release)
         check_stop_hold(self.stop_hold, speed_control_mode(self.speed_control))
+        check_light_hold(self.light_hold, speed_control_mode(self.speed_control))
         if self.expert_args and not self.is_expert:
             raise ValueError("--expert-arg applies to --agent expert only")
         if self.is_expert and self.engine != "auto":  # it would be accepted and change nothing
@@ -185,7 +190,8 @@ class AgentSpec:
     def drive(self) -> dict[str, Any]:
         """The drive settings of a learned agent, as keyword options of `yawil.agent.Agent.from_checkpoint`."""
         return {"speed_control": self.speed_control, "stop_release": self.stop_release, "stop_creep": self.stop_creep,
-                "stop_hold": self.stop_hold, "stop_gate": self.stop_gate, "yaw_noise_deg": self.yaw_noise_deg,
+                "stop_hold": self.stop_hold, "stop_gate": self.stop_gate, "light_hold": self.light_hold,
+                "yaw_noise_deg": self.yaw_noise_deg,
                 "command_noise_p": self.command_noise_p,
                 "yaw_noise_mode": self.yaw_noise_mode, "command_noise_mode": self.command_noise_mode}
 

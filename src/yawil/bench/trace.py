@@ -5,7 +5,9 @@
 The agent drives exactly as `yawil bench` drives it (same world seed, same judge); on every frame the
 privileged expert is asked what it would do in the same state, without driving. The CSV has, per frame: time,
 speed, the agent's control and (models with an aux head) its target speed, the expert's control, target speed
-and the reason that set it, and the lead vehicle the expert follows (distance to its stop point, speed).
+and the reason that set it, and the lead vehicle the expert follows (distance to its stop point, speed); the
+aux head's light probability (`agent_light_p`) beside the expert's label (`light_ahead`: a red or yellow stop line
+within 30 m).
 Why: a failure's cause is read off where the two columns part (a rear-end where the agent's target speed
 stays at cruise while the expert's falls is a car the net did not see; one where both fall but too late is
 a controller's lag). docs/experiments.md traces its rows' failures with it.
@@ -29,7 +31,7 @@ from yawil.policy.speed import add_engine_arguments, add_speed_control_arguments
 
 COLUMNS = ("time", "speed", "steer", "throttle", "brake", "agent_target_speed", "agent_lead_stop_m", "agent_lead_speed",
            "expert_steer", "expert_throttle", "expert_brake", "expert_target_speed", "expert_reason", "lead_stop_m",
-           "lead_speed", "agent_lead_stop_p", "agent_head_target_speed")
+           "lead_speed", "agent_lead_stop_p", "agent_head_target_speed", "agent_light_p", "light_ahead")
 
 
 @dataclass(frozen=True)
@@ -65,6 +67,7 @@ def trace_episode(ep: Episode, spec: AgentSpec, out: str | os.PathLike[str], exp
     CSV to `out` (through a temporary file, renamed when whole). `progress`: a bar of simulated seconds."""
     from tqdm import tqdm
 
+    from yawil.data.episode import expert_labels
     from yawil.expert import Expert, ExpertConfig
     from yawil.sim import make_world
 
@@ -87,8 +90,8 @@ def trace_episode(ep: Episode, spec: AgentSpec, out: str | os.PathLike[str], exp
             lead = min(leads, key=lambda h: h.distance) if leads else None
             control = agent.act(obs)
             last = getattr(agent, "last", None)
-            target, a_lead, a_lead_v, a_stop, head = (getattr(last, k, None) for k in (
-                "target_speed", "lead_distance", "lead_speed", "lead_stop", "head_target_speed"))
+            target, a_lead, a_lead_v, a_stop, head, a_light = (getattr(last, k, None) for k in (
+                "target_speed", "lead_distance", "lead_speed", "lead_stop", "head_target_speed", "light"))
             rows.append([
                 round(obs.time, 2), round(obs.speed, 3), round(control.steer, 4), round(control.throttle, 4),
                 round(control.brake, 4), "" if target is None else round(target, 3),
@@ -97,6 +100,7 @@ def trace_episode(ep: Episode, spec: AgentSpec, out: str | os.PathLike[str], exp
                 round(shadow.throttle, 4), round(shadow.brake, 4), round(st.target_speed, 3), st.reason,
                 "" if lead is None else round(lead.distance, 2), "" if lead is None else round(lead.speed, 2),
                 "" if a_stop is None else round(a_stop, 3), "" if head is None else round(head, 3),
+                "" if a_light is None else round(a_light, 3), expert_labels(st)["light_ahead"],
             ])
             obs = world.step(control)
             bar.update(round(obs.time, 1) - bar.n)

@@ -36,6 +36,7 @@ from yawil.policy.speed import (
     add_speed_control_arguments,
     check_stop_creep,
     check_stop_gate,
+    check_light_hold,
     check_stop_hold,
     check_stop_release,
     speed_control_mode,
@@ -86,6 +87,7 @@ class DaggerConfig:
     stop_creep: float = 0.0  # m: the release's creep length, as `yawil bench --stop-creep`
     stop_hold: float = 0.0  # s: the learner's "stop" hold, as `yawil bench --stop-hold`
     stop_gate: float = 0.0  # m: the release's lead-distance gate, as `yawil bench --stop-gate`
+    light_hold: float = 0.0  # s: the learner's wait at a light it sees, as `yawil bench --light-hold`
     # traffic of the on-policy rounds, per round ((LO, HI) drawn per episode; the last repeats; None: collect's
     # default; one (LO, HI) pair is every round's). Why: dense-traffic failures need the learner's own states in
     # queues, which the default 10-30 vehicles rarely make; per round so a finished run can grow a denser round
@@ -122,7 +124,8 @@ class DaggerConfig:
         for name, check, given, want in (("stop_release", check_stop_release, mode, seconds),
                                          ("stop_creep", check_stop_creep, self.stop_release, metres),
                                          ("stop_hold", check_stop_hold, mode, seconds),
-                                         ("stop_gate", check_stop_gate, self.stop_release, metres)):
+                                         ("stop_gate", check_stop_gate, self.stop_release, metres),
+                                         ("light_hold", check_light_hold, mode, "seconds >= 0, > 0 only with a speed_control")):
             try:
                 check(getattr(self, name), given)  # type: ignore[operator]
             except ValueError:
@@ -179,7 +182,7 @@ PER_ROUND = ("beta", "round_vehicles", "round_pedestrians")
 # the learner's drive: a finished run may grow rounds driven otherwise (a better drive found after its rounds
 # reaches other states); each round's dataset and stage marker record the drive that collected it, and a round
 # collected in part refuses another (its dataset's config differs)
-DRIVE = ("speed_control", "stop_release", "stop_creep", "stop_hold", "stop_gate")
+DRIVE = ("speed_control", "stop_release", "stop_creep", "stop_hold", "stop_gate", "light_hold")
 
 
 def _of_round(values: Sequence[Any], r: int) -> Any:
@@ -220,7 +223,7 @@ def _is_int(v: Any) -> bool:
 def load_learner(checkpoint: str, threads: int = 1, speed_control: bool | str = False, **release: float) -> Any:
     """The learner of a collection process: the checkpoint's agent on the CPU, with `threads` torch threads,
     driving as it will be benchmarked (`speed_control`: throttle and brake from its target speed; `release`:
-    stop_release, stop_creep, stop_hold, stop_gate), so that the states it visits are the ones the benchmark will
+    stop_release, stop_creep, stop_hold, stop_gate, light_hold), so that the states it visits are the ones the benchmark will
     see."""
     import torch
 
@@ -516,7 +519,7 @@ def run(args: argparse.Namespace) -> int:
             threads=args.threads, train_args=_train_args(args.train_arg),
             round0=args.round0, expert_data=args.expert_data, speed_control=args.speed_control,
             stop_release=args.stop_release, stop_creep=args.stop_creep, stop_hold=args.stop_hold,
-            stop_gate=args.stop_gate,
+            stop_gate=args.stop_gate, light_hold=args.light_hold,
             round_vehicles=args.round_vehicles, round_pedestrians=args.round_pedestrians,
             expert_args=_expert_args(args.expert_arg), guidance_reference=args.guidance_reference,
         )

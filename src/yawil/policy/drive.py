@@ -26,6 +26,7 @@ from yawil.policy.speed import (
     check_stop_creep,
     check_stop_gate,
     check_stop_hold,
+    check_light_hold,
     check_stop_release,
     speed_control_mode,
 )
@@ -110,6 +111,8 @@ class SpeedControl:
 # "stop" with a release (`stop_release` seconds, yawil.policy.speed): the lead-stop class is ignored for
 # STOP_CREEP seconds once it alone has held the car standing that long; then it is armed again.
 STOP_CREEP = 2.0  # s: TransFuser++'s creep is 1.5 s (carla_garage, sensor_agent.py); ours drives the head's target
+LIGHT_OUTPUT = AUX_NAMES.index("light_ahead")
+LIGHT_FIRES = 0.5  # the light output's probability over which it fires, as the lead-stop class's
 STANDING = 0.1  # m/s: under this the car counts as standing (carla_garage's stuck detector uses the same)
 
 
@@ -182,6 +185,32 @@ class StopHold:
 
 
 @dataclass
+class LightHold:
+    """A standing car does not start while the aux head's light output fires (a red or yellow stop line within
+    LIGHT_RANGE m), for at most `limit` seconds of one stand. Why: traced on town01, the head's target speed rises
+    seconds before the light turns green (it starts from the scene, crossing traffic stopping), and the car drove
+    into the crossing's pedestrians or traffic; the light output, trained on the light itself, says when to wait.
+    The limit bounds what a false alarm costs (the expert's longest wait at a light on the static routes: 33.5 s)."""
+
+    limit: float
+    dt: float = DT
+    held: int = 0  # steps this stand has been held by the light
+
+    def reset(self) -> None:
+        self.held = 0
+
+    def __call__(self, speed: float, fires: bool) -> bool:
+        """One step: whether the car is kept standing now."""
+        if speed >= STANDING:
+            self.held = 0  # moving: the rule is for starts only
+            return False
+        if not fires or self.held >= round(self.limit / self.dt):
+            return False
+        self.held += 1
+        return True
+
+
+@dataclass
 class EpisodeState:
     """What one episode keeps between steps: the route-projection hint, its noise stream (seeded per episode),
     a command-noise burst, the speed controller's integral and the stop release's timers."""
@@ -191,6 +220,7 @@ class EpisodeState:
     speed_control: SpeedControl | None = None
     stop_release: StopRelease | None = None
     stop_hold: StopHold | None = None
+    light_hold: LightHold | None = None
     hint: int | None = None
 
 
@@ -205,6 +235,7 @@ class Decision:
     lead_distance: float | None = None
     lead_speed: float | None = None
     lead_stop: float | None = None
+    light: float | None = None  # the light output's probability (a red or yellow stop line within LIGHT_RANGE m)
 
 
 @dataclass(frozen=True)
@@ -214,7 +245,8 @@ class DriveSettings:
     `speed_control`: None (the network's throttle and brake), "target", "lead" or "stop" (`yawil.policy.speed`);
     `stop_release`: seconds (with "stop"); `stop_creep`: metres after which a release's creep ends (0: its 2 s);
     `stop_hold`: seconds the stop outlasts the class (`StopHold`); `stop_gate`: metres of predicted lead distance
-    under which a stand does not count toward the release (0: every stand counts); `yaw_noise_deg` / `command_noise_p` with their readings (Table II,
+    under which a stand does not count toward the release (0: every stand counts); `light_hold`: seconds a standing
+    car at most waits while the light output fires (`LightHold`; 0: off); `yaw_noise_deg` / `command_noise_p` with their readings (Table II,
     `yawil.guidance`); `post`: the clipping rules. A zoo model's card names the settings its figures were
     measured with (`card.json` "drive"), and `yawil.agent.Agent.from_checkpoint("zoo:NAME")` uses them.
     """
@@ -224,6 +256,7 @@ class DriveSettings:
     stop_creep: float = 0.0
     stop_hold: float = 0.0
     stop_gate: float = 0.0
+    light_hold: float = 0.0
     yaw_noise_deg: float = 0.0
     command_noise_p: float = 0.0
     yaw_noise_mode: str = "raw"
@@ -236,6 +269,7 @@ class DriveSettings:
         object.__setattr__(self, "stop_creep", check_stop_creep(self.stop_creep, self.stop_release))
         object.__setattr__(self, "stop_hold", check_stop_hold(self.stop_hold, self.speed_control))
         object.__setattr__(self, "stop_gate", check_stop_gate(self.stop_gate, self.stop_release))
+        object.__setattr__(self, "light_hold", check_light_hold(self.light_hold, self.speed_control))
         if isinstance(self.yaw_noise_deg, bool) or not float(self.yaw_noise_deg) >= 0.0:
             raise ValueError(f"yaw_noise_deg={self.yaw_noise_deg!r}: expected >= 0 degrees")
         if isinstance(self.command_noise_p, bool) or not 0.0 <= float(self.command_noise_p) <= 1.0:
@@ -281,7 +315,7 @@ class DriveSettings:
     def as_dict(self) -> dict[str, Any]:
         """The settings that differ from the defaults, by name (a card's "drive", a record's options)."""
         out: dict[str, Any] = {}
-        for name in ("speed_control", "stop_release", "stop_creep", "stop_hold", "stop_gate", "yaw_noise_deg",
+        for name in ("speed_control", "stop_release", "stop_creep", "stop_hold", "stop_gate", "light_hold", "yaw_noise_deg",
                      "command_noise_p"):
             if getattr(self, name):
                 out[name] = getattr(self, name)
@@ -301,6 +335,7 @@ class DriveSettings:
             speed_control=SpeedControl() if self.speed_control is not None else None,
             stop_release=StopRelease(self.stop_release, creep_distance=self.stop_creep) if self.stop_release else None,
             stop_hold=StopHold(self.stop_hold) if self.stop_hold else None,
+            light_hold=LightHold(self.light_hold) if self.light_hold else None,
         )
 
     def command(self, option: int, state: EpisodeState) -> int:
@@ -318,6 +353,7 @@ class DriveSettings:
         lead_distance = max(0.0, float(aux[1]) * LEAD_RANGE)
         lead_speed = max(0.0, float(speed_of(aux[2])))
         lead_stop: float | None = None
+        light = float(1.0 / (1.0 + np.exp(-np.float64(aux[LIGHT_OUTPUT]))))  # a logit (BCE, yawil.learn.loss)
         if self.speed_control == "lead" and lead_distance < LEAD_SEEN:
             target = min(target, hazard_speed(lead_distance, lead_speed, LEAD_DECEL))
         if len(aux) > len(AUX_NAMES):
@@ -331,7 +367,9 @@ class DriveSettings:
                 fires = fires and not state.stop_release.released(ego_speed, alone, clear)
             if fires:
                 target = 0.0
+        if state.light_hold is not None and state.light_hold(ego_speed, light > LIGHT_FIRES):
+            target = 0.0
         if state.speed_control is not None:
             throttle, brake = state.speed_control(target, ego_speed)
             actions = np.array([actions[0], throttle, brake], dtype=np.float32)
-        return Decision(actions, target, head, lead_distance, lead_speed, lead_stop)
+        return Decision(actions, target, head, lead_distance, lead_speed, lead_stop, light)

@@ -9,6 +9,9 @@ standing vehicle is close ahead (probability over 0.5); with a release (`stop_re
 output is ignored for a short creep once it alone has held the car standing that long (`yawil.agent.StopRelease`);
 with a hold (`stop_hold` seconds) the stop outlasts the output by that long (`yawil.policy.drive.StopHold`); with
 a gate (`stop_gate` metres) a stand counts toward the release only while the predicted lead distance is that far.
+With a light hold (`light_hold` seconds, any speed control) a standing car does not start while the aux head's
+light output fires (a red or yellow stop line within 30 m), for at most that long a stand
+(`yawil.policy.drive.LightHold`).
 """
 
 from __future__ import annotations
@@ -66,6 +69,16 @@ def check_stop_hold(seconds: float, mode: str | None) -> float:
     return _stop_seconds("stop_hold", seconds, mode, "no hold")
 
 
+def check_light_hold(seconds: float, mode: str | None) -> float:
+    """`light_hold` as a float: seconds >= 0 (0: off), > 0 only with a speed control (it reads the aux head)."""
+    if isinstance(seconds, bool) or not isinstance(seconds, (int, float)) or not (math.isfinite(seconds) and seconds >= 0):
+        raise ValueError(f"light_hold={seconds!r}: expected seconds >= 0 (0: off)")
+    if seconds and mode is None:
+        raise ValueError(f"light_hold={seconds!r} applies to a speed control (--speed-control), which reads the aux "
+                         "head's light output")
+    return float(seconds)
+
+
 def check_stop_gate(metres: float, release: float) -> float:
     """`stop_gate` as a float (`_release_metres`)."""
     return _release_metres("stop_gate", metres, release, "every stand counts")
@@ -91,6 +104,9 @@ def add_speed_control_arguments(p: argparse.ArgumentParser, what: str = "") -> N
                    help="with --stop-release: a stand counts toward the release only while the predicted lead distance "
                         "is at least this far, so a car the net itself places close ahead is not crept into (default "
                         "0: every stand counts)")
+    p.add_argument("--light-hold", type=float, default=0.0, metavar="SECONDS",
+                   help="with --speed-control: a standing car does not start while the aux head's light output fires "
+                        "(a red or yellow stop line within 30 m), for at most this long a stand (default 0: off)")
 
 
 def given_drive(args: argparse.Namespace) -> dict[str, Any]:
@@ -98,7 +114,7 @@ def given_drive(args: argparse.Namespace) -> dict[str, Any]:
     keyword options of `yawil.bench.runner.AgentSpec` and `yawil.agent.Agent.from_checkpoint`."""
     return {"speed_control": args.speed_control, "stop_release": args.stop_release,
             "stop_creep": getattr(args, "stop_creep", 0.0), "stop_hold": getattr(args, "stop_hold", 0.0),
-            "stop_gate": getattr(args, "stop_gate", 0.0)}
+            "stop_gate": getattr(args, "stop_gate", 0.0), "light_hold": getattr(args, "light_hold", 0.0)}
 
 
 def add_engine_arguments(p: argparse.ArgumentParser, batched: bool = False) -> None:

@@ -89,7 +89,7 @@ def read_card(name: str, root: Path | None = None) -> dict[str, Any]:
     return card
 
 
-DRIVE_KEYS = ("speed_control", "stop_release", "stop_creep", "stop_hold", "stop_gate")  # what a card's "drive" may name
+DRIVE_KEYS = ("speed_control", "stop_release", "stop_creep", "stop_hold", "stop_gate", "light_hold")  # what a card's "drive" may name
 
 
 def card_drive(agent: str) -> dict[str, Any]:

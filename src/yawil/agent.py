@@ -70,6 +70,7 @@ class StepOutput:
     lead_distance: float | None = None  # m to the lead vehicle's stop point, from the aux head
     lead_speed: float | None = None  # m/s of the lead vehicle, from the aux head
     lead_stop: float | None = None  # probability of a standing vehicle close ahead (models built with lead_stop=true)
+    light: float | None = None  # probability of a red or yellow stop line within 30 m, from the aux head
 
 
 class Agent:
@@ -227,7 +228,7 @@ class Agent:
                 branches=None if out.branches is None else out.branches[i], guidance=rows[i][1],
                 command=None if option is None else command_index(option), control=control,
                 target_speed=d.target_speed, head_target_speed=d.head_target_speed, lead_distance=d.lead_distance,
-                lead_speed=d.lead_speed, lead_stop=d.lead_stop,
+                lead_speed=d.lead_speed, lead_stop=d.lead_stop, light=d.light,
             )  # fmt: skip
             controls.append(control)
         return controls

@@ -186,25 +186,29 @@ class StopHold:
 
 @dataclass
 class LightHold:
-    """A standing car does not start while the aux head's light output fires (a red or yellow stop line within
-    LIGHT_RANGE m), for at most `limit` seconds of one stand. Why: traced on town01, the head's target speed rises
-    seconds before the light turns green (it starts from the scene, crossing traffic stopping), and the car drove
-    into the crossing's pedestrians or traffic; the light output, trained on the light itself, says when to wait.
-    The limit bounds what a false alarm costs (the expert's longest wait at a light on the static routes: 33.5 s)."""
+    """A car the head itself stopped does not start while the aux head's light output fires (a red or yellow stop
+    line within LIGHT_RANGE m), for at most `limit` seconds of one stand. Why: traced on town01, the head's target
+    speed rises seconds before the light turns green (it starts from the scene, crossing traffic stopping), and the
+    car drove into the crossing's pedestrians or traffic; the light output, trained on the light itself, says
+    when to wait. Only a stand the head made (its target under the controller's stop speed at some standing step):
+    one the lead-stop class made may be 30 m short of the line, where the expert would drive on (traced: static
+    timeouts when every stand was held). The limit bounds what a false alarm costs."""
 
     limit: float
     dt: float = DT
     held: int = 0  # steps this stand has been held by the light
+    armed: bool = False  # the head itself stopped the car in this stand
 
     def reset(self) -> None:
-        self.held = 0
+        self.held, self.armed = 0, False
 
-    def __call__(self, speed: float, fires: bool) -> bool:
-        """One step: whether the car is kept standing now."""
+    def __call__(self, speed: float, fires: bool, head_stops: bool = True) -> bool:
+        """One step: whether the car is kept standing now. `head_stops`: the head's own target says stop."""
         if speed >= STANDING:
-            self.held = 0  # moving: the rule is for starts only
+            self.held, self.armed = 0, False  # moving: the rule is for starts only
             return False
-        if not fires or self.held >= round(self.limit / self.dt):
+        self.armed = self.armed or head_stops
+        if not (fires and self.armed) or self.held >= round(self.limit / self.dt):
             return False
         self.held += 1
         return True
@@ -367,7 +371,8 @@ class DriveSettings:
                 fires = fires and not state.stop_release.released(ego_speed, alone, clear)
             if fires:
                 target = 0.0
-        if state.light_hold is not None and state.light_hold(ego_speed, light > LIGHT_FIRES):
+        if state.light_hold is not None and state.light_hold(ego_speed, light > LIGHT_FIRES,
+                                                             head < SpeedControl.stop_speed):
             target = 0.0
         if state.speed_control is not None:
             throttle, brake = state.speed_control(target, ego_speed)

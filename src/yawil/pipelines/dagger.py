@@ -32,6 +32,7 @@ from yawil.cliargs import seed
 from yawil.executor import ExecutorConfig, add_executor_arguments, executor_from_args
 from yawil.guidance import REFERENCES, GuidanceConfig
 from yawil.policy.speed import (
+    DRIVE_OPTIONS,
     SPEED_CONTROLS,
     add_speed_control_arguments,
     check_stop_creep,
@@ -182,7 +183,7 @@ PER_ROUND = ("beta", "round_vehicles", "round_pedestrians")
 # the learner's drive: a finished run may grow rounds driven otherwise (a better drive found after its rounds
 # reaches other states); each round's dataset and stage marker record the drive that collected it, and a round
 # collected in part refuses another (its dataset's config differs)
-DRIVE = ("speed_control", "stop_release", "stop_creep", "stop_hold", "stop_gate", "light_hold")
+DRIVE = DRIVE_OPTIONS
 
 
 def _of_round(values: Sequence[Any], r: int) -> Any:

@@ -21,6 +21,8 @@ import math
 from typing import Any
 
 SPEED_CONTROLS: tuple[str, ...] = ("target", "lead", "stop")
+# the drive options a DAgger learner takes (a card names them too: yawil.zoo.DRIVE_KEYS, kept apart by the import rule)
+DRIVE_OPTIONS: tuple[str, ...] = ("speed_control", "stop_release", "stop_creep", "stop_hold", "stop_gate", "light_hold")
 ENGINES: tuple[str, ...] = ("auto", "torch", "openvino", "onnxruntime")
 
 

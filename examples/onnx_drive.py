@@ -1,7 +1,7 @@
 """Drive with an exported yawil model in ONNX Runtime, as `yawil bench` drives it.
 
-    yawil export zoo:yilratt-dagger-ego --onnx yilratt.onnx
-    python examples/onnx_drive.py yilratt.onnx yilratt-dagger-ego   # drives that zoo model's recorded probe frames
+    yawil export zoo:yilratt-dagger-dense3 --onnx yilratt.onnx
+    python examples/onnx_drive.py yilratt.onnx yilratt-dagger-dense3   # drives that zoo model's recorded probe frames
 
 The preprocessing needs nothing but the graph's metadata and numpy: the image is uint8 (H, W, 3) -> float32
 [1, 3, H, W] / 255; the speed and the guidance are normalised with `yawil.norm`; a branched model takes the
@@ -73,4 +73,4 @@ def main(path: str, zoo_name: str) -> None:
 
 
 if __name__ == "__main__":
-    main(sys.argv[1], sys.argv[2] if len(sys.argv) > 2 else "yilratt-dagger-ego")
+    main(sys.argv[1], sys.argv[2] if len(sys.argv) > 2 else "yilratt-dagger-dense3")

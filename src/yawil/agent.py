@@ -1,6 +1,6 @@
 """A trained model as a driver: Observation in, Control out, with exactly the training preprocessing.
 
-    agent = Agent.from_checkpoint("zoo:yilratt-dagger-ego")   # a zoo model drives as its card says
+    agent = Agent.from_checkpoint("zoo:yilratt-dagger-dense3")   # a zoo model drives as its card says
     agent.reset()
     control = agent.act(obs)       # yawil.sim.types.Control
     agent.last                     # raw outputs of that step (actions, speed, attention maps) for heat maps

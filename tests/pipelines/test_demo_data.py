@@ -18,6 +18,6 @@ def test_the_demo_collects_with_the_reference_its_zoo_model_learned() -> None:
 
 def test_data_of_an_earlier_demo_with_another_reference_is_refused_before_any_stage(tmp_path: Path) -> None:
     _mark(tmp_path, "collect", {"seconds": 1.0, "frames": 10})  # an earlier demo's marker: no reference (route)
-    with pytest.raises(ValueError, match=r"'route' yaw reference, but zoo:yilratt-dagger-ego needs 'ego'; remove"):
+    with pytest.raises(ValueError, match=r"'route' yaw reference, but zoo:yilratt-dagger-dense3 needs 'ego'; remove"):
         run_demo(tmp_path, DemoBudget())
     assert not (tmp_path / "stages" / "train_baseline.json").exists()

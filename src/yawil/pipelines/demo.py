@@ -51,7 +51,7 @@ class DemoBudget:
     baseline: str = "yaw-guided"  # the small network trained here
     baseline_steps: int = 600  # about 38k samples: enough for it to drive the straight and one-turn routes
     baseline_ema: float = 0.995  # the driven weights are the average (docs/experiments.md: the demo's robustness)
-    zoo_model: str = "yilratt-dagger-ego"  # the zoo's YILRatt, driven as its card says (eval100 89 of 100)
+    zoo_model: str = "yilratt-dagger-dense3"  # the zoo's best YILRatt in traffic, driven as its card says
     baseline_expected: float = 0.5  # the guard: the share of the demo's episodes the fresh baseline must drive
     tasks: tuple[str, ...] = ("straight", "one_turn")
     routes: str = "0:3"  # route ids per task and condition

@@ -55,3 +55,34 @@ def test_plan_collects_once_per_guidance_reference_and_commands_name_it(tmp_path
     collect, train, bench = r.commands("data/e", "runs/e")
     assert collect.endswith("--guidance-reference ego") and "--expert-data data/e" in train
     assert zp.recipe(route[0]).commands("data/r", "runs/r")[0].endswith("--seed 0")  # the paper's: no flag
+
+
+def test_a_chained_recipe_makes_its_base_first_and_its_commands_name_the_base_checkpoint(tmp_path: Path) -> None:
+    from yawil.zoo import read_card
+
+    dense = zp.recipe("yilratt-dagger-dense3")
+    assert [r.name for r in zp.chain(dense)] == ["yilratt-dagger-ego", "yilratt-dagger-dense3"]
+    plan = [name for name, _ in zp.stages(tmp_path, ["yilratt-dagger-dense3"])]
+    assert plan[:3] == ["collect_ego", "train_yilratt-dagger-ego", "eval100_yilratt-dagger-ego"]
+    assert plan.index("train_yilratt-dagger-dense3") > plan.index("pack_yilratt-dagger-ego")
+    both = [name for name, _ in zp.stages(tmp_path, ["yilratt-dagger-dense3", "yilratt-dagger-ego"])]
+    assert both.count("train_yilratt-dagger-ego") == 1  # a base asked for by name as well is made once
+    collect, base, train, bench = dense.commands("data/e", "runs/yilratt-dagger-dense3")
+    assert base == zp.recipe("yilratt-dagger-ego").train_command("data/e", "runs/yilratt-dagger-ego")
+    assert "--round0 runs/yilratt-dagger-ego/train/round_02/last.pt" in train
+    assert "--round-vehicles 50-60,100-130 --round-pedestrians 30-40,50-70" in train and "--round-lr 0.0003" in train
+    assert train.endswith("--speed-control stop --stop-release 10.0")  # the learner's drive in its rounds
+    assert bench.startswith("yawil bench --preset eval100 --agent runs/yilratt-dagger-dense3/train/round_03/last.pt")
+    # the recipe drives as the shipped model's card does, and its steps are the card's
+    card = read_card("yilratt-dagger-dense3")
+    assert dense.drive == card["drive"] and dense.steps == card["steps_total"]
+    assert "--light-hold 40.0" in bench
+
+
+def test_every_recipe_names_a_drive_the_benchmark_takes() -> None:
+    from yawil.bench.runner import AgentSpec
+    from yawil.zoo import DRIVE_KEYS
+
+    for r in zp.RECIPES:  # each recipe remakes a shipped model: its drive must suit that model's outputs
+        assert set(r.drive) <= set(DRIVE_KEYS), r.name
+        AgentSpec(f"zoo:{r.name}", **r.drive).validate(build=False)

@@ -3,9 +3,11 @@
 Stages (each resumable at any kill: a marker per finished stage, and every stage resumes mid-way):
   1. collect town01's expert data (training weathers, 20,000 frames, seed 0), once per yaw-guidance reference
      the recipes ask for (`route`, the paper's: OUT/data/town01; `ego`: OUT/data/town01_ego, the same episodes);
-  2. per zoo recipe: train it (`yawil dagger` or `yawil train`), benchmark it on the fixed 100-episode set
-     (`--preset eval100`) and on the demo's episodes, then pack it with its card into OUT/zoo/NAME
-     (`--install` packs into the repository's zoo instead, replacing the shipped model).
+  2. per zoo recipe: train it (`yawil dagger` or `yawil train`; a recipe with a `base` is a DAgger run whose
+     round 0 is its base recipe's final checkpoint, so the base is made first), benchmark it on the fixed
+     100-episode set (`--preset eval100`) and on the demo's episodes, driven as its card will say, then pack it
+     with its card into OUT/zoo/NAME (`--install` packs into the repository's zoo instead, replacing the shipped
+     model).
 
 Budgets are frames and steps only, so any machine makes the same models (CPU or GPU: `--device`); only the
 wall time differs, and the card records it with the machine. The commands in each card are the equivalent
@@ -39,31 +41,49 @@ class ZooRecipe:
     steps: int
     train_args: dict[str, Any] = field(default_factory=dict)  # TrainConfig settings
     dagger: dict[str, Any] | None = None  # DaggerConfig settings (None: plain `yawil train`)
-    drive: dict[str, Any] = field(default_factory=dict)  # speed_control, stop_release
+    drive: dict[str, Any] = field(default_factory=dict)  # how it is driven (a card's `drive`: yawil.zoo.DRIVE_KEYS)
     guidance_reference: str = GuidanceConfig.reference  # of the expert data (`yawil collect --guidance-reference`)
+    base: str | None = None  # a DAgger recipe whose final checkpoint is this DAgger run's round 0 (made first)
+
+    def checkpoint(self, out: str) -> str:
+        """Where the recipe's run folder `out` holds its final checkpoint."""
+        return f"{out}/train/round_{self.dagger['rounds']:02d}/last.pt" if self.dagger is not None else f"{out}/last.pt"
+
+    def train_command(self, data: str, out: str) -> str:
+        """The one `yawil dagger` or `yawil train` command of this recipe's training (its base's not included)."""
+        from yawil.zoo import DRIVE_KEYS, drive_flags
+
+        if self.dagger is not None:
+            d = self.dagger
+            flags = " ".join(f"--{k.replace('_', '-')} {_flag_value(v)}" for k, v in d.items() if k not in DRIVE_KEYS)
+            targs = " ".join(f"--train-arg '{k}={json.dumps(v)}'" for k, v in self.train_args.items())
+            round0 = f" --round0 {recipe(self.base).checkpoint(str(Path(out).parent / self.base))}" if self.base else ""
+            learner = drive_flags({k: v for k, v in d.items() if k in DRIVE_KEYS})  # how the learner drives its rounds
+            return (f"yawil dagger --out {out} --expert-data {data} --model {self.model}{round0} {flags} "
+                    f"--workers 2 --threads 2 {targs} {learner}").strip()
+        margs = " ".join(f"--model-arg {k}={json.dumps(v)}" for k, v in self.train_args.get("model_args", {}).items())
+        rest = " ".join(f"--{k.replace('_', '-')} {v}" for k, v in self.train_args.items() if k != "model_args")
+        return (f"yawil train --model {self.model} --data {data} --out {out} --batch-size 64 --max-steps {self.steps} "
+                f"{margs} {rest} --seed 0")
 
     def commands(self, data: str, out: str) -> list[str]:
-        """The single commands this recipe equals (for the card)."""
+        """The single commands this recipe equals (for the card): the collection, its base's training (where it
+        has one, in the sibling folder of `out`), its own, and eval100 as its card drives it."""
         from yawil.zoo import drive_flags
 
-        drive = drive_flags(self.drive)
         collect = f"yawil collect --town town01 --weathers train --frames {EXPERT_FRAMES} --out {data} --workers 2 --seed 0"
         if self.guidance_reference != GuidanceConfig.reference:
             collect += f" --guidance-reference {self.guidance_reference}"
-        if self.dagger is not None:
-            d = self.dagger
-            targs = " ".join(f"--train-arg '{k}={json.dumps(v)}'" for k, v in self.train_args.items())
-            train = (f"yawil dagger --out {out} --expert-data {data} --model {self.model} --round0-steps {d['round0_steps']} "
-                     f"--rounds {d['rounds']} --round-frames {d['round_frames']} --round-steps {d['round_steps']} "
-                     f"--workers 2 --threads 2 {targs} --speed-control {d['speed_control']}")
-            ckpt = f"{out}/train/round_{d['rounds']:02d}/last.pt"
-        else:
-            margs = " ".join(f"--model-arg {k}={json.dumps(v)}" for k, v in self.train_args.get("model_args", {}).items())
-            rest = " ".join(f"--{k.replace('_', '-')} {v}" for k, v in self.train_args.items() if k != "model_args")
-            train = (f"yawil train --model {self.model} --data {data} --out {out} --batch-size 64 --max-steps {self.steps} "
-                     f"{margs} {rest} --seed 0")
-            ckpt = f"{out}/last.pt"
-        return [collect, train, f"yawil bench --preset eval100 --agent {ckpt} --workers 2 {drive}".strip()]
+        bases = [c.train_command(data, str(Path(out).parent / c.name)) for c in chain(self)[:-1]]
+        bench = f"yawil bench --preset eval100 --agent {self.checkpoint(out)} --workers 2 {drive_flags(self.drive)}"
+        return [collect, *bases, self.train_command(data, out), bench.strip()]
+
+
+def _flag_value(value: Any) -> str:
+    """A DaggerConfig value as its command-line flag takes it (per-round traffic: LO-HI[,LO-HI...])."""
+    if isinstance(value, tuple) and value and isinstance(value[0], tuple):
+        return ",".join(f"{lo}-{hi}" for lo, hi in value)
+    return f"{value:g}" if isinstance(value, float) else str(value)
 
 
 LEAD_STOP = {"aux": True, "lead_stop": True, "speed_input": False}
@@ -71,6 +91,12 @@ LEAD_STOP = {"aux": True, "lead_stop": True, "speed_input": False}
 DAGGER_STOP_TRAIN = {"ema": 0.995, "model_args": LEAD_STOP, "aux_weight": 0.5}
 DAGGER_STOP = {"round0_steps": 750, "rounds": 2, "round_frames": 6000, "round_steps": 375, "speed_control": "stop"}
 STOP_DRIVE = {"speed_control": "stop", "stop_release": 10.0}
+# three DAgger rounds in town01 traffic from yilratt-dagger-ego's model, the last two at New Town02's density per
+# lane (docs/training.md, "Levers on the dense cell"), the learner driving with the lead-stop class and its release
+DENSE_ROUNDS = {"round0_steps": 1500, "rounds": 3, "round_frames": 6000, "round_steps": 375, "round_lr": 3e-4,
+                "round_vehicles": ((50, 60), (100, 130)), "round_pedestrians": ((30, 40), (50, 70)),
+                "speed_control": "stop", "stop_release": 10.0}
+DENSE_DRIVE = {"speed_control": "stop", "stop_release": 10.0, "stop_hold": 1.0, "stop_gate": 25.0, "light_hold": 40.0}
 RECIPES: tuple[ZooRecipe, ...] = (
     ZooRecipe("yilratt-dagger-stop",
               "YILRatt (the paper's network) + speed-blind aux head with the lead-stop class, weight average, two DAgger "
@@ -92,6 +118,13 @@ RECIPES: tuple[ZooRecipe, ...] = (
               "measured against the car's own heading (`ego`, not the paper's `route`); driven as yilratt-dagger-stop",
               "yilratt", 1500, train_args=DAGGER_STOP_TRAIN, dagger=DAGGER_STOP, drive=STOP_DRIVE,
               guidance_reference="ego"),
+    ZooRecipe("yilratt-dagger-dense3",
+              "YILRatt: yilratt-dagger-ego fine-tuned by three DAgger rounds driven by the learner in town01 traffic, the "
+              "last two at New Town02's density; driven by its target speed, stopping while its lead-stop class fires "
+              "(held 1 s), the 10 s release counting only stands with the predicted lead at 25 m or farther, a stand the "
+              "head made waiting up to 40 s while its light output fires",
+              "yilratt", 2625, train_args=DAGGER_STOP_TRAIN, dagger=DENSE_ROUNDS, drive=DENSE_DRIVE,
+              guidance_reference="ego", base="yilratt-dagger-ego"),
 )
 
 
@@ -100,6 +133,17 @@ def recipe(name: str) -> ZooRecipe:
         if r.name == name:
             return r
     raise ValueError(f"zoo recipe {name!r}: expected one of {', '.join(r.name for r in RECIPES)}")
+
+
+def chain(r: ZooRecipe) -> list[ZooRecipe]:
+    """The recipes a recipe is made from, its first base first, itself last."""
+    out = [r]
+    while out[0].base is not None:
+        base = recipe(out[0].base)
+        if base in out or base.dagger is None:
+            raise ValueError(f"zoo recipe {out[0].name}: base {base.name} must be a DAgger recipe outside its own chain")
+        out.insert(0, base)
+    return out
 
 
 def _suffix(reference: str) -> str:
@@ -166,7 +210,8 @@ def stages(out: Path, names: list[str], device: str = "auto", install: bool = Fa
             if r.dagger is not None:
                 from yawil.pipelines.dagger import DaggerConfig, DaggerRun
 
-                dcfg = DaggerConfig(model=r.model, expert_data=str(data), workers=2, threads=0,
+                round0 = checkpoint_of(recipe(r.base)) if r.base else None
+                dcfg = DaggerConfig(model=r.model, expert_data=str(data), workers=2, threads=0, round0=round0,
                                     train_args={**r.train_args, "device": device}, **r.dagger)
                 ckpt = DaggerRun(run, dcfg, progress=progress).run()
             else:
@@ -194,8 +239,7 @@ def stages(out: Path, names: list[str], device: str = "auto", install: bool = Fa
         def fn() -> dict[str, Any]:
             from yawil.bench.runner import AgentSpec, run_benchmark
 
-            spec = AgentSpec(checkpoint_of(r), speed_control=r.drive.get("speed_control", False),
-                             stop_release=float(r.drive.get("stop_release", 0.0)), device="cpu").validate()
+            spec = AgentSpec(checkpoint_of(r), **r.drive, device="cpu").validate()  # as its card will drive it
             eps = episode_set(which)
             t = time.perf_counter()
             run_benchmark(eps, spec, out / "results" / f"{r.name}_{which}", workers=EVAL_WORKERS, label=r.name,
@@ -229,7 +273,8 @@ def stages(out: Path, names: list[str], device: str = "auto", install: bool = Fa
 
         return fn
 
-    chosen = [recipe(n) for n in names]
+    # a base before what is made from it, each once
+    chosen = [recipe(n) for n in dict.fromkeys(c.name for n in names for c in chain(recipe(n)))]
     plan: list[tuple[str, Callable[[], dict[str, Any]]]] = [
         (collect_stage_name(ref), collect_stage(ref)) for ref in dict.fromkeys(r.guidance_reference for r in chosen)]
     for r in chosen:

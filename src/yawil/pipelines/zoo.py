@@ -51,14 +51,15 @@ class ZooRecipe:
 
     def train_command(self, data: str, out: str) -> str:
         """The one `yawil dagger` or `yawil train` command of this recipe's training (its base's not included)."""
-        from yawil.zoo import DRIVE_KEYS, drive_flags
+        from yawil.policy.speed import DRIVE_OPTIONS
+        from yawil.zoo import drive_flags
 
         if self.dagger is not None:
             d = self.dagger
-            flags = " ".join(f"--{k.replace('_', '-')} {_flag_value(v)}" for k, v in d.items() if k not in DRIVE_KEYS)
+            flags = " ".join(f"--{k.replace('_', '-')} {_flag_value(v)}" for k, v in d.items() if k not in DRIVE_OPTIONS)
             targs = " ".join(f"--train-arg '{k}={json.dumps(v)}'" for k, v in self.train_args.items())
             round0 = f" --round0 {recipe(self.base).checkpoint(str(Path(out).parent / self.base))}" if self.base else ""
-            learner = drive_flags({k: v for k, v in d.items() if k in DRIVE_KEYS})  # how the learner drives its rounds
+            learner = drive_flags({k: v for k, v in d.items() if k in DRIVE_OPTIONS})  # how the learner drives its rounds
             return (f"yawil dagger --out {out} --expert-data {data} --model {self.model}{round0} {flags} "
                     f"--workers 2 --threads 2 {targs} {learner}").strip()
         margs = " ".join(f"--model-arg {k}={json.dumps(v)}" for k, v in self.train_args.get("model_args", {}).items())

@@ -126,6 +126,17 @@ RECIPES: tuple[ZooRecipe, ...] = (
               "head made waiting up to 40 s while its light output fires",
               "yilratt", 2625, train_args=DAGGER_STOP_TRAIN, dagger=DENSE_ROUNDS, drive=DENSE_DRIVE,
               guidance_reference="ego", base="yilratt-dagger-ego"),
+    # the paper's baselines with the recipes of the shipped YILRatt, for its central comparison (issue 41)
+    ZooRecipe("cilrs-dagger-ego",
+              "CILRS (the paper's baseline: ResNet34, command branches, no yaw guidance) with the yilratt-dagger-ego "
+              "recipe and data; driven as yilratt-dagger-stop",
+              "cilrs", 1500, train_args=DAGGER_STOP_TRAIN, dagger=DAGGER_STOP, drive=STOP_DRIVE,
+              guidance_reference="ego"),
+    ZooRecipe("cilrs-dagger-dense3",
+              "CILRS with yilratt-dagger-dense3's recipe: cilrs-dagger-ego fine-tuned by the same three DAgger rounds in "
+              "town01 traffic; driven as yilratt-dagger-dense3",
+              "cilrs", 2625, train_args=DAGGER_STOP_TRAIN, dagger=DENSE_ROUNDS, drive=DENSE_DRIVE,
+              guidance_reference="ego", base="cilrs-dagger-ego"),
 )
 
 

@@ -30,9 +30,12 @@ def _manifest(tmp_path: Path, rows: list[dict[str, object]]) -> Path:
     return path
 
 
-def _row(label: str, model: str, folder: str, role: str = "test") -> dict[str, object]:
-    return {"label": label, "model": model, "training_seeds": 1, "role": role, "folder": folder,
-            "command": f"yawil bench --agent {label}"}
+def _row(label: str, model: str, folder: str, role: str = "test", column: str | None = None) -> dict[str, object]:
+    """A manifest row; a test row is its own table column unless `column` names another ("": none)."""
+    row: dict[str, object] = {"label": label, "model": model, "training_seeds": 1, "role": role, "folder": folder,
+                              "command": f"yawil bench --agent {label}"}
+    column = label if column is None and role == "test" else column
+    return {**row, "column": column} if column else row
 
 
 def test_the_page_and_the_readme_block_come_from_the_records(tmp_path: Path) -> None:
@@ -75,6 +78,8 @@ def test_a_difference_inside_the_uncertainty_is_not_established(tmp_path: Path) 
     ({"training_seeds": "one"}, "'training_seeds' must be a int"),
     ({"folder": "missing"}, "no episodes.jsonl"),
     ({"extra": 1}, "unknown field(s) extra"),
+    ({"column": ""}, "field 'column' must be a non-empty str"),
+    ({"role": "selection"}, "only test rows are table columns"),
 ])
 def test_a_bad_manifest_is_one_line_naming_the_field(tmp_path: Path, capsys: pytest.CaptureFixture[str],
                                                      change: dict[str, object], text: str) -> None:
@@ -83,6 +88,38 @@ def test_a_bad_manifest_is_one_line_naming_the_field(tmp_path: Path, capsys: pyt
     assert main(["results", str(manifest), "--out", str(tmp_path / "r.md")]) == 2
     (line,) = capsys.readouterr().err.strip().splitlines()
     assert "rows[0]" in line and text in line and not (tmp_path / "r.md").exists()
+
+
+def test_a_column_pools_one_agents_runs_and_rows_without_one_are_listed_only(tmp_path: Path,
+                                                                           capsys: pytest.CaptureFixture[str]) -> None:
+    rec = tmp_path / "records"
+    _folder(rec / "yd", "yd", "dense", 40, 50)
+    _folder(rec / "yr", "yr", "regular", 45, 50)
+    _folder(rec / "old", "old", "dense", 5, 50)
+    _folder(rec / "c", "c", "dense", 10, 50)
+    rows = [_row("Y dense", "yilratt", "yd", column="YILRatt"), _row("Y regular", "yilratt", "yr", column="YILRatt"),
+            _row("Y earlier", "yilratt", "old", column=""), _row("C", "cilrs", "c")]
+    readme = tmp_path / "README.md"
+    readme.write_text("<!-- yawil results: headline (made by `yawil results`; edit records/results.json) -->\n"
+                      "<!-- yawil results: end -->\n")
+    out = tmp_path / "results.md"
+    assert main(["results", str(_manifest(tmp_path, rows)), "--out", str(out), "--readme", str(readme)]) == 0
+    page = out.read_text()
+    tables = page[page.index("## Table III"):page.index("## Beside the paper")]
+    assert tables.count("New Town02 & Weather: YILRatt |") == 2  # one column for both runs, in III and IV
+    assert "Y earlier" not in tables and "Y dense" not in tables
+    assert "| Y earlier | Nav. (Dense) | New Town02 & Weather | 5/50 = 10 % [4-21] |" in page  # still beside the paper
+    claims = page[page.index("## The paper's claims"):]
+    assert "YILRatt 40/50" in claims and "Y earlier" not in claims
+    assert "YILRatt: 45/50 = 90 % [79-96] against the paper's 76.66" in claims  # the column's Regular run
+    head = readme.read_text()
+    assert "| YILRatt | **40/50 = 80 % [67-89]**" in head and "Y earlier" not in head
+    # two runs of one column in one cell, or a column of two families: refused in one line
+    for bad in ([*rows[:2], _row("Y again", "yilratt", "old", column="YILRatt")],
+                [*rows[:2], _row("C in Y", "cilrs", "c", column="YILRatt")]):
+        assert main(["results", str(_manifest(tmp_path, bad)), "--out", str(tmp_path / "bad.md")]) == 2
+        (line,) = capsys.readouterr().err.strip().splitlines()
+        assert "column 'YILRatt'" in line and not (tmp_path / "bad.md").exists()
 
 
 def test_the_committed_page_and_readme_block_are_what_the_records_say(tmp_path: Path,

@@ -3,9 +3,11 @@
 The manifest (JSON) lists the headline runs, each a results folder under the manifest's folder with what the
 table needs to say about it: which model family it is (to sit beside the paper's column of that family), how
 many training seeds stand behind it, its role (test: the condition run once per shipped model; selection:
-the training-town set that chose it) and the command that drove it. The page holds Tables III and IV of those
-rows with a 95 % Wilson interval in every cell, the paper's figure beside ours, and the paper's claims, each
-marked by its evidence: a difference counts only when its interval (Newcombe's, from the two Wilson intervals)
+the training-town set that chose it), the command that drove it and, for the agents the tables compare, its
+`column`: the test rows of one agent (its cells of several runs, e.g. Dense and Regular) share one. Every row is
+listed beside the paper's figure; Tables III and IV, README's headline and the paper's claims are of the columns
+only, so earlier models and drive variants stay on the page without crowding the tables. Every cell carries a
+95 % Wilson interval, and each claim is marked by its evidence: a difference counts only when its interval (Newcombe's, from the two Wilson intervals)
 excludes zero. A claim whose rows are absent reads "not tested". Nothing on the page is typed by hand but the
 manifest's notes, so the page and README's headline cell regenerate on any clone.
 """
@@ -26,6 +28,7 @@ TITLE = "# Results: what yawil's agents drive"  # the page's first line: how `ya
 MODELS = ("expert", "cil", "cilrs", "yaw-guided", "yilratt", "yilratt-pretrained")
 ROLES = ("test", "selection")
 _ROW_FIELDS = {"folder": str, "label": str, "model": str, "training_seeds": int, "role": str, "command": str}
+_OPTIONAL = {"note": str, "column": str}
 
 
 @dataclass(frozen=True)
@@ -40,6 +43,7 @@ class Row:
     folder: Path
     records: tuple[dict[str, Any], ...]
     note: str = ""
+    column: str = ""  # the agent's column in Tables III/IV and the claims ("": listed only)
 
     def cell(self, task: str, condition: str) -> tuple[int, int]:
         """(successes, episodes) of one Table III cell, seeds pooled."""
@@ -114,16 +118,22 @@ def read_results_manifest(path: str | Path) -> tuple[list[Row], str, dict[str, A
         where = f"{path} rows[{i}]"
         if not isinstance(item, dict):
             raise _bad(where, "expected an object")
-        unknown = sorted(set(item) - set(_ROW_FIELDS) - {"note"})
+        unknown = sorted(set(item) - set(_ROW_FIELDS) - set(_OPTIONAL))
         if unknown:
-            raise _bad(where, f"unknown field(s) {', '.join(unknown)}; expected {', '.join(_ROW_FIELDS)}, note")
+            raise _bad(where, f"unknown field(s) {', '.join(unknown)}; expected {', '.join(_ROW_FIELDS)} "
+                              f"(and optionally {', '.join(_OPTIONAL)})")
         for name, kind in _ROW_FIELDS.items():
             if not isinstance(item.get(name), kind) or isinstance(item.get(name), bool):
                 raise _bad(where, f"field {name!r} must be a {kind.__name__}, got {item.get(name)!r}")
+        for name, kind in _OPTIONAL.items():
+            if name in item and (not isinstance(item[name], kind) or not item[name]):
+                raise _bad(where, f"field {name!r} must be a non-empty {kind.__name__}, got {item[name]!r}")
         if item["model"] not in MODELS:
             raise _bad(where, f"model {item['model']!r}; expected one of {', '.join(MODELS)}")
         if item["role"] not in ROLES:
             raise _bad(where, f"role {item['role']!r}; expected one of {', '.join(ROLES)}")
+        if "column" in item and item["role"] != "test":
+            raise _bad(where, f"column {item['column']!r} on a {item['role']} row; only test rows are table columns")
         if item["training_seeds"] < 0:
             raise _bad(where, f"training_seeds must be >= 0 (0: the expert), got {item['training_seeds']}")
         folder = path.parent / item["folder"]
@@ -134,10 +144,11 @@ def read_results_manifest(path: str | Path) -> tuple[list[Row], str, dict[str, A
         if not records:
             raise _bad(where, f"{folder} holds no episode records")
         rows.append(Row(item["label"], item["model"], item["training_seeds"], item["role"], item["command"],
-                        folder, records, str(item.get("note", ""))))
+                        folder, records, item.get("note", ""), item.get("column", "")))
     labels = [r.label for r in rows]
     if len(set(labels)) != len(labels):
         raise _bad(str(path), f"row labels must differ, got {labels}")
+    columns(rows, str(path))  # a column's rows agree and never share a cell
     attention = doc.get("attention")
     if attention is not None:
         attention = _read_attention(path, attention)
@@ -149,6 +160,32 @@ def read_results_manifest(path: str | Path) -> tuple[list[Row], str, dict[str, A
         except OSError as err:
             raise _bad(f"{path} notes_file", f"{notes_path} cannot be read ({err.strerror or err})") from None
     return rows, notes, attention
+
+
+def columns(rows: Sequence[Row], where: str = "results manifest") -> list[Row]:
+    """The table columns: each column's test rows as one Row (records pooled, in manifest order). Its rows must
+    be of one model family and number of training seeds, and no cell (task, condition) may come from two of them:
+    a column is one agent, and each of its cells one run."""
+    out: dict[str, Row] = {}
+    for row in rows:
+        if not row.column:
+            continue
+        first = out.get(row.column)
+        if first is None:
+            out[row.column] = Row(row.column, row.model, row.training_seeds, "test", row.command, row.folder,
+                                  row.records, column=row.column)
+            continue
+        if (row.model, row.training_seeds) != (first.model, first.training_seeds):
+            raise _bad(where, f"column {row.column!r}: row {row.label!r} is {row.model} with {row.training_seeds} "
+                              f"training seed(s), the column's first row {first.model} with {first.training_seeds}")
+        shared = {(r["task"], r["condition"]) for r in row.records} & {(r["task"], r["condition"]) for r in first.records}
+        if shared:
+            task, cond = sorted(shared)[0]
+            raise _bad(where, f"column {row.column!r}: row {row.label!r} drives {task} in {cond}, which the column "
+                              "already holds; one run per cell")
+        out[row.column] = Row(first.label, first.model, first.training_seeds, "test", f"{first.command}; {row.command}",
+                              first.folder, first.records + row.records, column=row.column)
+    return list(out.values())
 
 
 def _pct(ok: int, n: int) -> str:
@@ -209,13 +246,13 @@ def _status(verdicts: Sequence[str]) -> str:
 
 
 def headline_block(rows: Sequence[Row], task: str = "dense", condition: str = "new-town-weather") -> str:
-    """README's headline table: the paper's hardest cell, every test row that drove it beside the paper's
-    figure of its model family."""
+    """README's headline table: the paper's hardest cell, every column that drove it beside the paper's figure
+    of its model family."""
     lines = [f"| agent | {TASKS[task].title}, {CONDITIONS[condition].title}: successes [95 % Wilson] | paper, "
              "same model family | training seeds |", "|---|---|---|---|"]
-    for row in rows:
+    for row in columns(rows):
         ok, n = row.cell(task, condition)
-        if n and row.role == "test":
+        if n:
             paper = paper_cell(task, condition, row.model) if row.model in PAPER_MODELS else "—"
             lines.append(f"| {row.label} | **{_pct(ok, n)}** | {paper} | {row.training_seeds or '—'} |")
     return "\n".join(lines) + "\n"
@@ -225,27 +262,31 @@ def render(rows: Sequence[Row], notes: str, manifest: str, attention: Mapping[st
     """The whole page as Markdown."""
     from yawil.bench.report import ResultSet, success_table, violations_table
 
-    sets = [ResultSet(r.label, r.folder, list(r.records)) for r in rows if r.role == "test"]
+    cols = columns(rows)
+    sets = [ResultSet(c.label, c.folder, list(c.records)) for c in cols]
     md = [TITLE, "",
           f"Made by `yawil results {manifest} --out docs/results.md` from the committed records it lists "
           "(docs/benchmark.md says how episodes are driven and judged); edit the manifest, not this page. A "
           "difference between two rows counts only when its 95 % interval excludes zero.", "",
-          "## Rows", "", "| row | model | training seeds | role | episodes | records | command | note |",
-          "|---|---|---|---|---|---|---|---|"]
+          "## Rows", "", "| row | model | training seeds | role | column | episodes | records | command | note |",
+          "|---|---|---|---|---|---|---|---|---|"]
     for r in rows:
-        md.append(f"| {r.label} | {r.model} | {r.training_seeds or '—'} | {r.role} | {len(r.records)} | "
+        md.append(f"| {r.label} | {r.model} | {r.training_seeds or '—'} | {r.role} | {r.column or '—'} | {len(r.records)} | "
                   f"`{r.folder.parent.name}/{r.folder.name}` | `{r.command}` | {r.note} |")
     md += ["", "Role *test*: a cell run once per shipped model (New Town02 & Weather is the test of the training-"
-           "town models); *selection*: training-town episodes that chose a recipe or checkpoint.", ""]
+           "town models); *selection*: training-town episodes that chose a recipe or checkpoint. *Column*: the agent "
+           "whose column of Tables III and IV the row fills (—: an earlier model or drive, listed here and beside the "
+           "paper only).", ""]
     if sets:
-        md += ["## Table III and IV (test rows)", "", success_table(sets).markdown(), violations_table(sets).markdown()]
+        md += ["## Table III and IV (the columns: one agent each)", "", success_table(sets).markdown(),
+               violations_table(sets).markdown()]
     md += ["## Beside the paper", "", *beside_paper(rows), "",
            "The paper's static tasks are the best of 5 evaluation seeds, its dynamic tasks mean ± std over 3; "
            "ours pool the cell's episodes.", "", "## The paper's claims", ""]
     for claim in CLAIMS:
-        status, evidence = judge(claim, rows)
+        status, evidence = judge(claim, cols)
         md.append(f"- **{status}**: {claim.text}.")
-        missing = "no committed row in these cells" if claim.b is None else "no committed rows of both families in these cells"
+        missing = "no column in these cells" if claim.b is None else "no columns of both families in these cells"
         md += [f"  - {e}" for e in evidence] or [f"  - {missing}"]
     if attention is not None and "by_class" in attention:
         md += ["", f"## The paper's heat-map claims: {attention['label']}", "",

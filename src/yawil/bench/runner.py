@@ -25,9 +25,9 @@ from yawil.bench.suites import Episode
 from yawil.executor import ExecutorConfig, for_worker, open_executor
 from yawil.locking import folder_lock
 from yawil.policy.speed import (
+    check_light_hold,
     check_stop_creep,
     check_stop_gate,
-    check_light_hold,
     check_stop_hold,
     check_stop_release,
     given_drive,

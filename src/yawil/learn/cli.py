@@ -16,6 +16,7 @@ import os
 import sys
 from typing import Any
 
+
 def _true_false(text: str) -> bool:
     """'true' / 'false' (a YAML-like 'yes' or '1' is refused, as in config files)."""
     if text not in ("true", "false"):

@@ -35,9 +35,9 @@ from yawil.policy.speed import (
     DRIVE_OPTIONS,
     SPEED_CONTROLS,
     add_speed_control_arguments,
+    check_light_hold,
     check_stop_creep,
     check_stop_gate,
-    check_light_hold,
     check_stop_hold,
     check_stop_release,
     speed_control_mode,
@@ -128,7 +128,7 @@ class DaggerConfig:
                                          ("stop_gate", check_stop_gate, self.stop_release, metres),
                                          ("light_hold", check_light_hold, mode, "seconds >= 0, > 0 only with a speed_control")):
             try:
-                check(getattr(self, name), given)  # type: ignore[operator]
+                check(getattr(self, name), given)  # type: ignore[operator, arg-type]
             except ValueError:
                 need(False, name, want)
         need(isinstance(self.expert_args, dict), "expert_args", "a mapping of ExpertConfig settings")
@@ -249,7 +249,12 @@ class DaggerRun:
         return self.out / "data" / f"round_{r:02d}"
 
     def round_run(self, r: int) -> Path:
-        return self.out / "train" / f"round_{r:02d}"
+        return self.round_folder(self.out, r)
+
+    @staticmethod
+    def round_folder(out: Path, r: int) -> Path:
+        """Round r's training folder of the run in `out` (also for those who name a run's checkpoint before it exists)."""
+        return Path(out) / "train" / f"round_{r:02d}"
 
     def policy(self, r: int) -> Path:
         """The checkpoint that round r ends with (round 0: the given one or the trained one)."""

@@ -47,7 +47,10 @@ class ZooRecipe:
 
     def checkpoint(self, out: str) -> str:
         """Where the recipe's run folder `out` holds its final checkpoint."""
-        return f"{out}/train/round_{self.dagger['rounds']:02d}/last.pt" if self.dagger is not None else f"{out}/last.pt"
+        from yawil.pipelines.dagger import DaggerRun
+
+        folder = Path(out) if self.dagger is None else DaggerRun.round_folder(Path(out), self.dagger["rounds"])
+        return str(folder / "last.pt")
 
     def train_command(self, data: str, out: str) -> str:
         """The one `yawil dagger` or `yawil train` command of this recipe's training (its base's not included)."""

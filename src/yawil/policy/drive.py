@@ -23,10 +23,10 @@ from yawil.expert import ExpertConfig, hazard_speed
 from yawil.guidance import COMMAND_NOISE_MODES, YAW_NOISE_MODES, CommandNoise
 from yawil.models.base import AUX_NAMES, LEAD_STOP_FIRES
 from yawil.policy.speed import (
+    check_light_hold,
     check_stop_creep,
     check_stop_gate,
     check_stop_hold,
-    check_light_hold,
     check_stop_release,
     speed_control_mode,
 )

@@ -140,6 +140,15 @@ RECIPES: tuple[ZooRecipe, ...] = (
               "town01 traffic; driven as yilratt-dagger-dense3",
               "cilrs", 2625, train_args=DAGGER_STOP_TRAIN, dagger=DENSE_ROUNDS, drive=DENSE_DRIVE,
               guidance_reference="ego", base="cilrs-dagger-ego"),
+    ZooRecipe("cil-dagger-ego",
+              "CIL (the paper's other baseline: the small perception, command branches, no yaw guidance) with the "
+              "yilratt-dagger-ego recipe and data; driven as yilratt-dagger-stop",
+              "cil", 1500, train_args=DAGGER_STOP_TRAIN, dagger=DAGGER_STOP, drive=STOP_DRIVE, guidance_reference="ego"),
+    ZooRecipe("cil-dagger-dense3",
+              "CIL with yilratt-dagger-dense3's recipe: cil-dagger-ego fine-tuned by the same three DAgger rounds in "
+              "town01 traffic; driven as yilratt-dagger-dense3",
+              "cil", 2625, train_args=DAGGER_STOP_TRAIN, dagger=DENSE_ROUNDS, drive=DENSE_DRIVE,
+              guidance_reference="ego", base="cil-dagger-ego"),
 )
 
 

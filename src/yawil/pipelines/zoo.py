@@ -21,7 +21,7 @@ import platform
 import time
 from collections import Counter
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -117,38 +117,28 @@ RECIPES: tuple[ZooRecipe, ...] = (
               "against the car's own heading (`ego`, not the paper's `route`); driven as yilratt-dagger-stop",
               "yaw-guided", 1500, train_args=DAGGER_STOP_TRAIN, dagger=DAGGER_STOP, drive=STOP_DRIVE,
               guidance_reference="ego"),
-    ZooRecipe("yilratt-dagger-ego",
-              "YILRatt (the paper's network) with the yilratt-dagger-stop recipe on expert data whose yaw guidance is "
-              "measured against the car's own heading (`ego`, not the paper's `route`); driven as yilratt-dagger-stop",
-              "yilratt", 1500, train_args=DAGGER_STOP_TRAIN, dagger=DAGGER_STOP, drive=STOP_DRIVE,
-              guidance_reference="ego"),
-    ZooRecipe("yilratt-dagger-dense3",
-              "YILRatt: yilratt-dagger-ego fine-tuned by three DAgger rounds driven by the learner in town01 traffic, the "
-              "last two at New Town02's density; driven by its target speed, stopping while its lead-stop class fires "
-              "(held 1 s), the 10 s release counting only stands with the predicted lead at 25 m or farther, a stand the "
-              "head made waiting up to 40 s while its light output fires",
-              "yilratt", 2625, train_args=DAGGER_STOP_TRAIN, dagger=DENSE_ROUNDS, drive=DENSE_DRIVE,
-              guidance_reference="ego", base="yilratt-dagger-ego"),
-    # the paper's baselines with the recipes of the shipped YILRatt, for its central comparison (issue 41)
-    ZooRecipe("cilrs-dagger-ego",
-              "CILRS (the paper's baseline: ResNet34, command branches, no yaw guidance) with the yilratt-dagger-ego "
-              "recipe and data; driven as yilratt-dagger-stop",
-              "cilrs", 1500, train_args=DAGGER_STOP_TRAIN, dagger=DAGGER_STOP, drive=STOP_DRIVE,
-              guidance_reference="ego"),
-    ZooRecipe("cilrs-dagger-dense3",
-              "CILRS with yilratt-dagger-dense3's recipe: cilrs-dagger-ego fine-tuned by the same three DAgger rounds in "
-              "town01 traffic; driven as yilratt-dagger-dense3",
-              "cilrs", 2625, train_args=DAGGER_STOP_TRAIN, dagger=DENSE_ROUNDS, drive=DENSE_DRIVE,
-              guidance_reference="ego", base="cilrs-dagger-ego"),
-    ZooRecipe("cil-dagger-ego",
-              "CIL (the paper's other baseline: the small perception, command branches, no yaw guidance) with the "
-              "yilratt-dagger-ego recipe and data; driven as yilratt-dagger-stop",
-              "cil", 1500, train_args=DAGGER_STOP_TRAIN, dagger=DAGGER_STOP, drive=STOP_DRIVE, guidance_reference="ego"),
-    ZooRecipe("cil-dagger-dense3",
-              "CIL with yilratt-dagger-dense3's recipe: cil-dagger-ego fine-tuned by the same three DAgger rounds in "
-              "town01 traffic; driven as yilratt-dagger-dense3",
-              "cil", 2625, train_args=DAGGER_STOP_TRAIN, dagger=DENSE_ROUNDS, drive=DENSE_DRIVE,
-              guidance_reference="ego", base="cil-dagger-ego"),
+    YILRATT_EGO := ZooRecipe(
+        "yilratt-dagger-ego",
+        "YILRatt (the paper's network) with the yilratt-dagger-stop recipe on expert data whose yaw guidance is "
+        "measured against the car's own heading (`ego`, not the paper's `route`); driven as yilratt-dagger-stop",
+        "yilratt", 1500, train_args=DAGGER_STOP_TRAIN, dagger=DAGGER_STOP, drive=STOP_DRIVE, guidance_reference="ego"),
+    YILRATT_DENSE3 := ZooRecipe(
+        "yilratt-dagger-dense3",
+        "YILRatt: yilratt-dagger-ego fine-tuned by three DAgger rounds driven by the learner in town01 traffic, the "
+        "last two at New Town02's density; driven by its target speed, stopping while its lead-stop class fires "
+        "(held 1 s), the 10 s release counting only stands with the predicted lead at 25 m or farther, a stand the "
+        "head made waiting up to 40 s while its light output fires",
+        "yilratt", 2625, train_args=DAGGER_STOP_TRAIN, dagger=DENSE_ROUNDS, drive=DENSE_DRIVE, guidance_reference="ego",
+        base="yilratt-dagger-ego"),
+    # the paper's baselines with the shipped YILRatt's recipes, by construction (issue 41: its central comparison)
+    *(r for model, what in (("cilrs", "CILRS (the paper's baseline: ResNet34, command branches, no yaw guidance)"),
+                            ("cil", "CIL (the paper's other baseline: the small perception, command branches, no yaw "
+                                    "guidance)"))
+      for r in (replace(YILRATT_EGO, name=f"{model}-dagger-ego", model=model,
+                        summary=f"{what} with the yilratt-dagger-ego recipe and data; driven as yilratt-dagger-stop"),
+                replace(YILRATT_DENSE3, name=f"{model}-dagger-dense3", model=model, base=f"{model}-dagger-ego",
+                        summary=f"{model.upper()} with yilratt-dagger-dense3's recipe: {model}-dagger-ego fine-tuned by "
+                                "the same three DAgger rounds in town01 traffic; driven as yilratt-dagger-dense3"))),
 )
 
 

@@ -80,6 +80,8 @@ def test_a_difference_inside_the_uncertainty_is_not_established(tmp_path: Path) 
     ({"extra": 1}, "unknown field(s) extra"),
     ({"column": ""}, "field 'column' must be a non-empty str"),
     ({"role": "selection"}, "only test rows are table columns"),
+    ({"training_seed": -1}, "field 'training_seed' must be an int >= 0"),
+    ({"training_seed": 0, "training_seeds": 3}, "a row with training_seed is one model"),
 ])
 def test_a_bad_manifest_is_one_line_naming_the_field(tmp_path: Path, capsys: pytest.CaptureFixture[str],
                                                      change: dict[str, object], text: str) -> None:
@@ -120,6 +122,25 @@ def test_a_column_pools_one_agents_runs_and_rows_without_one_are_listed_only(tmp
         assert main(["results", str(_manifest(tmp_path, bad)), "--out", str(tmp_path / "bad.md")]) == 2
         (line,) = capsys.readouterr().err.strip().splitlines()
         assert "column 'YILRatt'" in line and not (tmp_path / "bad.md").exists()
+
+
+def test_a_column_of_several_training_seeds_pools_them_and_shows_their_spread(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    rec = tmp_path / "records"
+    for seed, oks in ((0, 30), (1, 35), (2, 40)):
+        _folder(rec / f"c{seed}", f"c{seed}", "dense", oks, 50)
+    rows = [{**_row(f"C seed {k}", "cilrs", f"c{k}", column="CILRS"), "training_seed": k} for k in range(3)]
+    out = tmp_path / "results.md"
+    assert main(["results", str(_manifest(tmp_path, rows)), "--out", str(out)]) == 0
+    page = out.read_text()
+    assert "| CILRS | Nav. (Dense) | New Town02 & Weather | 3 | seed 0: 30/50, seed 1: 35/50, seed 2: 40/50 | " \
+           "70.0 ± 8.2 |" in page
+    assert "| Nav. (Dense) | 70 [62-77] (1 seed) |" in page  # Table III pools the three models' 150 episodes
+    # a seed's cell twice, or a column naming training seeds on some rows only: refused in one line
+    for bad in ([*rows, {**rows[0], "label": "C again"}], [*rows, _row("C unseeded", "cilrs", "c0", column="CILRS")]):
+        assert main(["results", str(_manifest(tmp_path, bad)), "--out", str(tmp_path / "bad.md")]) == 2
+        (line,) = capsys.readouterr().err.strip().splitlines()
+        assert "column 'CILRS'" in line and not (tmp_path / "bad.md").exists()
 
 
 def test_the_committed_page_and_readme_block_are_what_the_records_say(tmp_path: Path,

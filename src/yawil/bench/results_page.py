@@ -28,7 +28,7 @@ TITLE = "# Results: what yawil's agents drive"  # the page's first line: how `ya
 MODELS = ("expert", "cil", "cilrs", "yaw-guided", "yilratt", "yilratt-pretrained")
 ROLES = ("test", "selection")
 _ROW_FIELDS = {"folder": str, "label": str, "model": str, "training_seeds": int, "role": str, "command": str}
-_OPTIONAL = {"note": str, "column": str}
+_OPTIONAL = {"note": str, "column": str, "training_seed": int}
 
 
 @dataclass(frozen=True)
@@ -44,6 +44,7 @@ class Row:
     records: tuple[dict[str, Any], ...]
     note: str = ""
     column: str = ""  # the agent's column in Tables III/IV and the claims ("": listed only)
+    training_seed: int | None = None  # which training seed's model drove it, where a column has several
 
     def cell(self, task: str, condition: str) -> tuple[int, int]:
         """(successes, episodes) of one Table III cell, seeds pooled."""
@@ -126,8 +127,13 @@ def read_results_manifest(path: str | Path) -> tuple[list[Row], str, dict[str, A
             if not isinstance(item.get(name), kind) or isinstance(item.get(name), bool):
                 raise _bad(where, f"field {name!r} must be a {kind.__name__}, got {item.get(name)!r}")
         for name, kind in _OPTIONAL.items():
-            if name in item and (not isinstance(item[name], kind) or not item[name]):
-                raise _bad(where, f"field {name!r} must be a non-empty {kind.__name__}, got {item[name]!r}")
+            if name in item and (not isinstance(item[name], kind) or isinstance(item[name], bool)
+                                 or (kind is str and not item[name]) or (kind is int and item[name] < 0)):
+                want = "a non-empty str" if kind is str else "an int >= 0"
+                raise _bad(where, f"field {name!r} must be {want}, got {item[name]!r}")
+        if "training_seed" in item and item["training_seeds"] != 1:
+            raise _bad(where, f"training_seed {item['training_seed']} on a row of {item['training_seeds']} training "
+                              "seeds; a row with training_seed is one model (training_seeds 1)")
         if item["model"] not in MODELS:
             raise _bad(where, f"model {item['model']!r}; expected one of {', '.join(MODELS)}")
         if item["role"] not in ROLES:
@@ -144,7 +150,7 @@ def read_results_manifest(path: str | Path) -> tuple[list[Row], str, dict[str, A
         if not records:
             raise _bad(where, f"{folder} holds no episode records")
         rows.append(Row(item["label"], item["model"], item["training_seeds"], item["role"], item["command"],
-                        folder, records, item.get("note", ""), item.get("column", "")))
+                        folder, records, item.get("note", ""), item.get("column", ""), item.get("training_seed")))
     labels = [r.label for r in rows]
     if len(set(labels)) != len(labels):
         raise _bad(str(path), f"row labels must differ, got {labels}")
@@ -162,30 +168,63 @@ def read_results_manifest(path: str | Path) -> tuple[list[Row], str, dict[str, A
     return rows, notes, attention
 
 
+def _cells(row: Row) -> set[tuple[str, str]]:
+    return {(r["task"], r["condition"]) for r in row.records}
+
+
 def columns(rows: Sequence[Row], where: str = "results manifest") -> list[Row]:
-    """The table columns: each column's test rows as one Row (records pooled, in manifest order). Its rows must
-    be of one model family and number of training seeds, and no cell (task, condition) may come from two of them:
-    a column is one agent, and each of its cells one run."""
-    out: dict[str, Row] = {}
+    """The table columns: each column's test rows as one Row (records pooled, in manifest order). A column is one
+    agent: its rows are of one model family, and a cell (task, condition) comes from one run, or from one run per
+    training seed where the column's rows name their `training_seed` (all of them, then; the column's training
+    seeds are how many it names)."""
+    groups: dict[str, list[Row]] = {}
     for row in rows:
-        if not row.column:
-            continue
-        first = out.get(row.column)
-        if first is None:
-            out[row.column] = Row(row.column, row.model, row.training_seeds, "test", row.command, row.folder,
-                                  row.records, column=row.column)
-            continue
-        if (row.model, row.training_seeds) != (first.model, first.training_seeds):
-            raise _bad(where, f"column {row.column!r}: row {row.label!r} is {row.model} with {row.training_seeds} "
-                              f"training seed(s), the column's first row {first.model} with {first.training_seeds}")
-        shared = {(r["task"], r["condition"]) for r in row.records} & {(r["task"], r["condition"]) for r in first.records}
-        if shared:
-            task, cond = sorted(shared)[0]
-            raise _bad(where, f"column {row.column!r}: row {row.label!r} drives {task} in {cond}, which the column "
-                              "already holds; one run per cell")
-        out[row.column] = Row(first.label, first.model, first.training_seeds, "test", f"{first.command}; {row.command}",
-                              first.folder, first.records + row.records, column=row.column)
-    return list(out.values())
+        if row.column:
+            groups.setdefault(row.column, []).append(row)
+    out = []
+    for name, group in groups.items():
+        first = group[0]
+        seeded = [r.training_seed is not None for r in group]
+        if any(seeded) and not all(seeded):
+            raise _bad(where, f"column {name!r}: some of its rows name a training_seed and some do not; name it on all")
+        seen: dict[tuple[str, str, int | None], str] = {}
+        for row in group:
+            if (row.model, row.training_seeds) != (first.model, first.training_seeds):
+                raise _bad(where, f"column {name!r}: row {row.label!r} is {row.model} with {row.training_seeds} "
+                                  f"training seed(s), the column's first row {first.model} with {first.training_seeds}")
+            for task, cond in sorted(_cells(row)):
+                other = seen.setdefault((task, cond, row.training_seed), row.label)
+                if other != row.label:
+                    seed = "" if row.training_seed is None else f" with training seed {row.training_seed}"
+                    raise _bad(where, f"column {name!r}: rows {other!r} and {row.label!r} both drive {task} in {cond}"
+                                      f"{seed}; one run per cell (and training seed)")
+        seeds = len({r.training_seed for r in group}) if all(seeded) else first.training_seeds
+        out.append(Row(name, first.model, seeds, "test", "; ".join(r.command for r in group), first.folder,
+                       tuple(rec for r in group for rec in r.records), column=name))
+    return out
+
+
+def seed_spread(rows: Sequence[Row]) -> list[str]:
+    """Per column and cell with several training seeds: each seed's successes and the mean ± population std of
+    their success rates (the spread a reader needs before trusting a difference between two recipes)."""
+    lines = []
+    for name in dict.fromkeys(r.column for r in rows if r.column and r.training_seed is not None):
+        group = [r for r in rows if r.column == name]
+        for cond in CONDITIONS:
+            for task in TASKS:
+                per = {r.training_seed: r.cell(task, cond) for r in group if r.cell(task, cond)[1]}
+                if len(per) < 2:
+                    continue
+                pcts = [100 * ok / n for ok, n in per.values()]
+                mean = sum(pcts) / len(pcts)
+                std = (sum((p - mean) ** 2 for p in pcts) / len(pcts)) ** 0.5
+                each = ", ".join(f"seed {k}: {ok}/{n}" for k, (ok, n) in sorted(per.items()))
+                lines.append(f"| {name} | {TASKS[task].title} | {CONDITIONS[cond].title} | {len(per)} | {each} | "
+                             f"{mean:.1f} ± {std:.1f} |")
+    if not lines:
+        return []
+    return ["| column | task | condition | training seeds | successes per training seed | mean ± std (%) |",
+            "|---|---|---|---|---|---|", *lines]
 
 
 def _pct(ok: int, n: int) -> str:
@@ -280,6 +319,11 @@ def render(rows: Sequence[Row], notes: str, manifest: str, attention: Mapping[st
     if sets:
         md += ["## Table III and IV (the columns: one agent each)", "", success_table(sets).markdown(),
                violations_table(sets).markdown()]
+        spread = seed_spread(rows)
+        if spread:
+            md += ["### Training-seed spread", "", *spread, "",
+                   "A column with several training seeds pools their episodes in the tables above; here each "
+                   "seed's model alone (success rate over its episodes), then mean ± population std over the seeds.", ""]
     md += ["## Beside the paper", "", *beside_paper(rows), "",
            "The paper's static tasks are the best of 5 evaluation seeds, its dynamic tasks mean ± std over 3; "
            "ours pool the cell's episodes.", "", "## The paper's claims", ""]

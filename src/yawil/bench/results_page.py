@@ -20,7 +20,7 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-from yawil.bench.metrics import difference_interval, wilson_interval
+from yawil.bench.metrics import difference_interval, mean_std, wilson_interval
 from yawil.bench.paper import PAPER_MODELS, TABLE_III, paper_cell
 from yawil.bench.suites import CONDITIONS, TABLE_TASKS, TASKS
 
@@ -215,12 +215,10 @@ def seed_spread(rows: Sequence[Row]) -> list[str]:
                 per = {r.training_seed: r.cell(task, cond) for r in group if r.cell(task, cond)[1]}
                 if len(per) < 2:
                     continue
-                pcts = [100 * ok / n for ok, n in per.values()]
-                mean = sum(pcts) / len(pcts)
-                std = (sum((p - mean) ** 2 for p in pcts) / len(pcts)) ** 0.5
+                spread = mean_std([100 * ok / n for ok, n in per.values()])
                 each = ", ".join(f"seed {k}: {ok}/{n}" for k, (ok, n) in sorted(per.items()))
                 lines.append(f"| {name} | {TASKS[task].title} | {CONDITIONS[cond].title} | {len(per)} | {each} | "
-                             f"{mean:.1f} ± {std:.1f} |")
+                             f"{spread.value:.1f} ± {spread.std:.1f} |")
     if not lines:
         return []
     return ["| column | task | condition | training seeds | successes per training seed | mean ± std (%) |",

@@ -139,6 +139,11 @@ RECIPES: tuple[ZooRecipe, ...] = (
                 replace(YILRATT_DENSE3, name=f"{model}-dagger-dense3", model=model, base=f"{model}-dagger-ego",
                         summary=f"{model.upper()} with yilratt-dagger-dense3's recipe: {model}-dagger-ego fine-tuned by "
                                 "the same three DAgger rounds in town01 traffic; driven as yilratt-dagger-dense3"))),
+    # YILRatt's attention and ResNet34 ablated: the same yaw guidance on CIL's small perception, the same dense rounds
+    replace(YILRATT_DENSE3, name="yaw-guided-dagger-dense3", model="yaw-guided", base="yaw-guided-dagger-ego",
+            summary="the small yaw-guided network (CIL's perception with yaw guidance, no attention) with "
+                    "yilratt-dagger-dense3's recipe: yaw-guided-dagger-ego fine-tuned by the same three DAgger rounds "
+                    "in town01 traffic; driven as yilratt-dagger-dense3"),
 )
 
 

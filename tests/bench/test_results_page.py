@@ -195,3 +195,22 @@ def test_the_page_replaces_only_its_own_file(tmp_path: Path, capsys: pytest.Capt
     assert main(["results", str(manifest), "--out", str(tmp_path / "records" / "y" / "page.md"), "--force"]) == 2
     assert main(["results", str(manifest), "--out", str(tmp_path / "page.md")]) == 0
     assert main(["results", str(manifest), "--out", str(tmp_path / "page.md")]) == 0  # its own page, regenerated
+
+
+def test_a_claim_compares_the_episodes_both_rows_drove(tmp_path: Path) -> None:
+    """A row that also drove more seeds of an easy task must not win on them: only shared episodes count."""
+    from yawil.bench.results_page import CLAIMS, judge, read_results_manifest, shared_episodes
+
+    rec = tmp_path / "records"
+    _folder(rec / "c", "c", "regular", 10, 25)
+    _folder(rec / "r", "r", "regular", 10, 25)
+    with EpisodeLog(rec / "c") as log:  # 25 more episodes (benchmark seed 1), all successful, only in CIL's run
+        for rid in range(25):
+            log.append({"protocol": PROTOCOL, "suite": "nocrash", "task": "regular", "condition": "new-town-weather",
+                        "weather": "WetCloudyNoon", "route_id": rid, "seed": 1, "success": True, "reason": None,
+                        "km_driven": 1.0, "lane_opposite": 0, "lane_offroad": 0, "red_lights": 0, "lights_passed": 2})
+    rows, _, _ = read_results_manifest(_manifest(tmp_path, [_row("C", "cil", "c"), _row("R", "cilrs", "r")]))
+    assert shared_episodes(rows[0], rows[1], "regular", "new-town-weather") == ((10, 25), (10, 25))
+    claim = next(c for c in CLAIMS if (c.a, c.b) == ("cil", "cilrs"))
+    status, evidence = judge(claim, rows)  # pooled, CIL would read 35/50 against 10/25 and be "held"
+    assert status == "not established" and "10/25" in evidence[0] and "35/50" not in evidence[0]

@@ -250,6 +250,22 @@ def beside_paper(rows: Sequence[Row]) -> list[str]:
     return lines
 
 
+def shared_episodes(ra: Row, rb: Row, task: str, condition: str) -> tuple[tuple[int, int], tuple[int, int]]:
+    """(successes, episodes) of each row in one cell, over the episodes (route, weather, benchmark seed) both
+    drove, every training seed's copy kept: a difference over the same episodes, so a row that also drove more
+    seeds of an easy task does not weigh that task more than the other row does."""
+    def cell(row: Row) -> list[dict[str, Any]]:
+        return [r for r in row.records if r["task"] == task and r["condition"] == condition]
+
+    def key(r: dict[str, Any]) -> tuple[Any, ...]:
+        return r["route_id"], r["weather"], r["seed"]
+
+    a, b = cell(ra), cell(rb)
+    both = {key(r) for r in a} & {key(r) for r in b}
+    a, b = [r for r in a if key(r) in both], [r for r in b if key(r) in both]
+    return (sum(bool(r["success"]) for r in a), len(a)), (sum(bool(r["success"]) for r in b), len(b))
+
+
 def judge(claim: Claim, rows: Sequence[Row]) -> tuple[str, list[str]]:
     """(status, evidence lines) of a claim: held / not held / not established / not tested."""
     a_rows = [r for r in rows if r.model == claim.a]
@@ -270,14 +286,15 @@ def judge(claim: Claim, rows: Sequence[Row]) -> tuple[str, list[str]]:
     evidence, verdicts = [], []
     for ra in a_rows:
         for rb in b_rows:
-            cells = [t for t in claim.tasks if ra.cell(t, claim.condition)[1] and rb.cell(t, claim.condition)[1]]
+            pairs = {t: shared_episodes(ra, rb, t, claim.condition) for t in claim.tasks}
+            cells = [t for t, (a, _) in pairs.items() if a[1]]
             if not cells:
                 continue
-            a = tuple(map(sum, zip(*(ra.cell(t, claim.condition) for t in cells), strict=True)))
-            b = tuple(map(sum, zip(*(rb.cell(t, claim.condition) for t in cells), strict=True)))
+            a = tuple(map(sum, zip(*(pairs[t][0] for t in cells), strict=True)))
+            b = tuple(map(sum, zip(*(pairs[t][1] for t in cells), strict=True)))
             d, lo, hi = difference_interval(a, b)  # type: ignore[arg-type]
             verdicts.append("held" if lo > 0 else "not held" if hi < 0 else "not established")
-            evidence.append(f"{ra.label} {_pct(*a)} vs {rb.label} {_pct(*b)} on "
+            evidence.append(f"{ra.label} {_pct(*a)} vs {rb.label} {_pct(*b)} on the episodes both drove in "
                             f"{', '.join(TASKS[t].title for t in cells)}: {d:+.0f} points [{lo:+.0f}, {hi:+.0f}]")
     return _status(verdicts), evidence
 

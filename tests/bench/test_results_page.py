@@ -12,13 +12,14 @@ from yawil.bench.records import PROTOCOL, EpisodeLog, check_run_info
 from yawil.cli import main
 
 
-def _folder(path: Path, label: str, task: str, oks: int, n: int, cond: str = "new-town-weather") -> None:
+def _folder(path: Path, label: str, task: str, oks: int, n: int, cond: str = "new-town-weather",
+            seed: int = 0) -> None:
     check_run_info(path, {"agent": label, "agent_options": {}, "label": label})
     with EpisodeLog(path) as log:
         for rid in range(n):
             ok = rid < oks
             log.append({"protocol": PROTOCOL, "suite": "nocrash", "task": task, "condition": cond,
-                        "weather": "WetCloudyNoon", "route_id": rid, "seed": 0, "success": ok,
+                        "weather": "WetCloudyNoon", "route_id": rid, "seed": seed, "success": ok,
                         "reason": None if ok else "collision_vehicle", "km_driven": 1.0, "lane_opposite": 0,
                         "lane_offroad": 0, "red_lights": 0, "lights_passed": 2})
 
@@ -204,11 +205,7 @@ def test_a_claim_compares_the_episodes_both_rows_drove(tmp_path: Path) -> None:
     rec = tmp_path / "records"
     _folder(rec / "c", "c", "regular", 10, 25)
     _folder(rec / "r", "r", "regular", 10, 25)
-    with EpisodeLog(rec / "c") as log:  # 25 more episodes (benchmark seed 1), all successful, only in CIL's run
-        for rid in range(25):
-            log.append({"protocol": PROTOCOL, "suite": "nocrash", "task": "regular", "condition": "new-town-weather",
-                        "weather": "WetCloudyNoon", "route_id": rid, "seed": 1, "success": True, "reason": None,
-                        "km_driven": 1.0, "lane_opposite": 0, "lane_offroad": 0, "red_lights": 0, "lights_passed": 2})
+    _folder(rec / "c", "c", "regular", 25, 25, seed=1)  # 25 more episodes, all successful, only in CIL's run
     rows, _, _ = read_results_manifest(_manifest(tmp_path, [_row("C", "cil", "c"), _row("R", "cilrs", "r")]))
     assert shared_episodes(rows[0], rows[1], "regular", "new-town-weather") == ((10, 25), (10, 25))
     claim = next(c for c in CLAIMS if (c.a, c.b) == ("cil", "cilrs"))

@@ -22,6 +22,7 @@ from typing import Any
 
 from yawil.bench.metrics import difference_interval, mean_std, wilson_interval
 from yawil.bench.paper import PAPER_MODELS, TABLE_III, paper_cell
+from yawil.bench.records import episode_key
 from yawil.bench.suites import CONDITIONS, TABLE_TASKS, TASKS
 
 TITLE = "# Results: what yawil's agents drive"  # the page's first line: how `yawil results` knows its own page
@@ -46,10 +47,17 @@ class Row:
     column: str = ""  # the agent's column in Tables III/IV and the claims ("": listed only)
     training_seed: int | None = None  # which training seed's model drove it, where a column has several
 
+    def episodes(self, task: str, condition: str) -> list[dict[str, Any]]:
+        """The records of one Table III cell."""
+        return [r for r in self.records if r["task"] == task and r["condition"] == condition]
+
     def cell(self, task: str, condition: str) -> tuple[int, int]:
         """(successes, episodes) of one Table III cell, seeds pooled."""
-        recs = [r for r in self.records if r["task"] == task and r["condition"] == condition]
-        return sum(bool(r["success"]) for r in recs), len(recs)
+        return _successes(self.episodes(task, condition))
+
+
+def _successes(records: Sequence[dict[str, Any]]) -> tuple[int, int]:
+    return sum(bool(r["success"]) for r in records), len(records)
 
 
 @dataclass(frozen=True)
@@ -254,16 +262,9 @@ def shared_episodes(ra: Row, rb: Row, task: str, condition: str) -> tuple[tuple[
     """(successes, episodes) of each row in one cell, over the episodes (route, weather, benchmark seed) both
     drove, every training seed's copy kept: a difference over the same episodes, so a row that also drove more
     seeds of an easy task does not weigh that task more than the other row does."""
-    def cell(row: Row) -> list[dict[str, Any]]:
-        return [r for r in row.records if r["task"] == task and r["condition"] == condition]
-
-    def key(r: dict[str, Any]) -> tuple[Any, ...]:
-        return r["route_id"], r["weather"], r["seed"]
-
-    a, b = cell(ra), cell(rb)
-    both = {key(r) for r in a} & {key(r) for r in b}
-    a, b = [r for r in a if key(r) in both], [r for r in b if key(r) in both]
-    return (sum(bool(r["success"]) for r in a), len(a)), (sum(bool(r["success"]) for r in b), len(b))
+    a, b = ra.episodes(task, condition), rb.episodes(task, condition)
+    both = {episode_key(r) for r in a} & {episode_key(r) for r in b}
+    return _successes([r for r in a if episode_key(r) in both]), _successes([r for r in b if episode_key(r) in both])
 
 
 def judge(claim: Claim, rows: Sequence[Row]) -> tuple[str, list[str]]:

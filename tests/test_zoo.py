@@ -139,7 +139,8 @@ def test_pack_checks_everything_first_and_replaces_only_with_force(tmp_path: Pat
 
     for fields, text in [({"sumary": "typo"}, "unknown field(s) sumary"), ({"probe": {}}, "written by yawil zoo pack"),
                          ({"drive": {"speed_control": "fast"}}, "drive: speed_control='fast'"),
-                         ({"drive": {"stop_release": 5}}, "applies to --speed-control stop")]:
+                         ({"drive": {"stop_release": 5}}, "applies to --speed-control stop"),
+                         ({"training_seeds": {"one": {}}}, "training_seeds must map a training seed")]:
         rc, err = pack_with(fields)
         assert rc == 2 and text in err, err
     assert not (tmp_path / "zoo").exists()

@@ -78,7 +78,7 @@ def probe_outputs(agent: Any, probe: dict[str, np.ndarray]) -> dict[str, list[li
 
 # The fields a card given to `pack` may hold (written by whoever trained the model); pack adds the rest.
 CARD_FIELDS = ("summary", "commands", "commit", "data", "made_by", "machine", "wall_s", "steps_total", "steps_note",
-               "validation", "selection", "eval100", "demo", "results", "drive")
+               "validation", "selection", "eval100", "demo", "results", "drive", "training_seeds")
 PACKED_FIELDS = ("name", "model_name", "model_config", "step", "omitted", "weights", "parameters_stored", "probe",
                  "weights_sha256")
 
@@ -102,6 +102,10 @@ def check_card(card: Any, where: str) -> dict[str, Any]:
     unknown = sorted(set(card) - set(CARD_FIELDS))
     if unknown:
         raise ValueError(f"{where}: unknown field(s) {', '.join(unknown)}; a card holds {', '.join(CARD_FIELDS)}")
+    seeds = card.get("training_seeds", {})
+    if not isinstance(seeds, dict) or not all(k.isdigit() and isinstance(v, dict) for k, v in seeds.items()):
+        raise ValueError(f"{where}: training_seeds must map a training seed (\"1\", \"2\", ...) to an object of that "
+                         f"seed's commands and figures, got {seeds!r}")
     drive = card.get("drive") or {}
     if not isinstance(drive, dict) or set(drive) - set(DRIVE_KEYS):
         raise ValueError(f"{where}: drive must be an object of {', '.join(DRIVE_KEYS)}, got {drive!r}")

@@ -92,3 +92,30 @@ def test_every_recipe_names_a_drive_its_model_takes(tiny_checkpoint: Any) -> Non
         AgentSpec(str(ckpt), **r.drive).validate(build=True)
         if (ZOO_DIR / r.name / "model.pt").is_file():
             AgentSpec(f"zoo:{r.name}", **r.drive).validate(build=False)
+
+
+def test_a_training_seed_trains_the_whole_chain_and_a_folder_holds_one_seed(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    import json
+
+    from yawil.cli import main
+
+    dense = zp.recipe("cilrs-dagger-dense3")
+    collect, base, train, _ = dense.commands("data/e", "runs/cilrs-dagger-dense3", seed=2)
+    assert collect.endswith("--seed 0 --guidance-reference ego")  # the expert data are every seed's
+    assert base.startswith("yawil dagger --out runs/cilrs-dagger-ego --seed 2 ")
+    assert train.startswith("yawil dagger --out runs/cilrs-dagger-dense3 --seed 2 ")
+    assert "--seed" not in dense.commands("data/e", "runs/x")[2]  # seed 0: the shipped cards' commands, unchanged
+    plain = zp.recipe("yaw-guided-ema")
+    assert plain.train_command("d", "o", seed=3).endswith("--seed 3")
+    # a folder whose base was trained with seed 0 (a marker without a seed: every run before seeds) is refused
+    out = tmp_path / "z"
+    (out / "stages").mkdir(parents=True)
+    (out / "stages" / "train_cilrs-dagger-ego.json").write_text(json.dumps({"checkpoint": "x.pt"}))
+    zp.check_seed(out, ["cilrs-dagger-dense3"], 0)
+    with pytest.raises(ValueError, match="trained there with training seed 0, not 1; give each training seed its own"):
+        zp.check_seed(out, ["cilrs-dagger-dense3"], 1)
+    for extra, text in ((["--seed", "1"], "training seed 0, not 1"), (["--seed", "1", "--install"], "ships each recipe")):
+        with pytest.raises(SystemExit, match=text):
+            main(["reproduce", "--profile", "zoo", "--out", str(out), "--zoo-models", "cilrs-dagger-dense3",
+                  "--dry-run", *extra])

@@ -87,7 +87,8 @@ def add_parser(subparsers: argparse._SubParsersAction) -> argparse.ArgumentParse
     p.add_argument("--out", default="runs/reproduce", help="output folder (default runs/reproduce)")
     p.add_argument("--pretrained", default=None, help="local torchvision ResNet34 ImageNet weights (.pth), "
                    "for the 'YILRatt (pretrained)' column; omitted: that column is skipped")  # fmt: skip
-    p.add_argument("--seed", type=seed, default=0)
+    p.add_argument("--seed", type=seed, default=0, help="seed of collection and training (default 0); --profile "
+                   "zoo: the recipes' training seed (their expert data stay seed 0's)")
     p.add_argument("--device", default=None, choices=("auto", "cpu", "cuda"),
                    help="training device (default: the profile's; gpu: cuda, the others: auto)")
     p.add_argument("--dry-run", action="store_true", help="print the stages and their settings, run nothing")
@@ -150,7 +151,15 @@ def run_zoo(args: argparse.Namespace) -> int:
     for n in names:
         zoo.recipe(n)  # an unknown name fails before any stage
     out = Path(args.out)
-    plan = zoo.stages(out, names, device=args.device or "auto", install=args.install)
+    if args.install and args.seed:  # the zoo ships each recipe's seed 0; another seed's figures go in its card
+        raise SystemExit(f"yawil reproduce: --install with --seed {args.seed}: the zoo ships each recipe's model of "
+                         "training seed 0 (docs/training.md, \"The model zoo\"); without --install the model packs "
+                         "into OUT/zoo")
+    try:
+        zoo.check_seed(out, names, args.seed)
+    except ValueError as err:
+        raise SystemExit(f"yawil reproduce: {err}") from None
+    plan = zoo.stages(out, names, device=args.device or "auto", install=args.install, seed=args.seed)
     for name, _ in plan:
         print(f"  stage {name}")
     if args.dry_run:

@@ -52,8 +52,9 @@ class ZooRecipe:
         folder = Path(out) if self.dagger is None else DaggerRun.round_folder(Path(out), self.dagger["rounds"])
         return str(folder / "last.pt")
 
-    def train_command(self, data: str, out: str) -> str:
-        """The one `yawil dagger` or `yawil train` command of this recipe's training (its base's not included)."""
+    def train_command(self, data: str, out: str, seed: int = 0) -> str:
+        """The one `yawil dagger` or `yawil train` command of this recipe's training (its base's not included), at
+        training seed `seed` (the shipped models': 0, which a DAgger command leaves unsaid)."""
         from yawil.policy.speed import DRIVE_OPTIONS
         from yawil.zoo import drive_flags
 
@@ -63,24 +64,26 @@ class ZooRecipe:
             targs = " ".join(f"--train-arg '{k}={json.dumps(v)}'" for k, v in self.train_args.items())
             round0 = f" --round0 {recipe(self.base).checkpoint(str(Path(out).parent / self.base))}" if self.base else ""
             learner = drive_flags({k: v for k, v in d.items() if k in DRIVE_OPTIONS})  # how the learner drives its rounds
-            return (f"yawil dagger --out {out} --expert-data {data} --model {self.model}{round0} {flags} "
+            seeded = f" --seed {seed}" if seed else ""
+            return (f"yawil dagger --out {out}{seeded} --expert-data {data} --model {self.model}{round0} {flags} "
                     f"--workers 2 --threads 2 {targs} {learner}").strip()
         margs = " ".join(f"--model-arg {k}={json.dumps(v)}" for k, v in self.train_args.get("model_args", {}).items())
         rest = " ".join(f"--{k.replace('_', '-')} {v}" for k, v in self.train_args.items() if k != "model_args")
         return (f"yawil train --model {self.model} --data {data} --out {out} --batch-size 64 --max-steps {self.steps} "
-                f"{margs} {rest} --seed 0")
+                f"{margs} {rest} --seed {seed}")
 
-    def commands(self, data: str, out: str) -> list[str]:
+    def commands(self, data: str, out: str, seed: int = 0) -> list[str]:
         """The single commands this recipe equals (for the card): the collection, its base's training (where it
-        has one, in the sibling folder of `out`), its own, and eval100 as its card drives it."""
+        has one, in the sibling folder of `out`), its own, and eval100 as its card drives it. A training seed
+        other than 0 trains the whole chain with it; the expert data stay seed 0's, the same for every seed."""
         from yawil.zoo import drive_flags
 
         collect = f"yawil collect --town town01 --weathers train --frames {EXPERT_FRAMES} --out {data} --workers 2 --seed 0"
         if self.guidance_reference != GuidanceConfig.reference:
             collect += f" --guidance-reference {self.guidance_reference}"
-        bases = [c.train_command(data, str(Path(out).parent / c.name)) for c in chain(self)[:-1]]
+        bases = [c.train_command(data, str(Path(out).parent / c.name), seed) for c in chain(self)[:-1]]
         bench = f"yawil bench --preset eval100 --agent {self.checkpoint(out)} --workers 2 {drive_flags(self.drive)}"
-        return [collect, *bases, self.train_command(data, out), bench.strip()]
+        return [collect, *bases, self.train_command(data, out, seed), bench.strip()]
 
 
 def _flag_value(value: Any) -> str:
@@ -210,8 +213,20 @@ def episode_set(which: str) -> list[Any]:
                     weather_rule="cycle")
 
 
+def check_seed(out: Path, names: list[str], seed: int) -> None:
+    """Refuse, before any stage, a folder whose finished trainings used another training seed: their markers
+    would be taken for this seed's models (a marker without a seed is seed 0's, as every run before seeds were)."""
+    from yawil.stages import read_marker
+
+    for r in (c for n in names for c in chain(recipe(n))):
+        marker = read_marker(out / "stages" / f"train_{r.name}.json")
+        if marker is not None and int(marker.get("seed", 0)) != seed:
+            raise ValueError(f"{out}: {r.name} was trained there with training seed {marker.get('seed', 0)}, "
+                             f"not {seed}; give each training seed its own --out")
+
+
 def stages(out: Path, names: list[str], device: str = "auto", install: bool = False,
-           progress: bool = True) -> list[tuple[str, Callable[[], dict[str, Any]]]]:
+           progress: bool = True, seed: int = 0) -> list[tuple[str, Callable[[], dict[str, Any]]]]:
     def collect_stage(reference: str) -> Callable[[], dict[str, Any]]:
         def fn() -> dict[str, Any]:
             from yawil.data.collect import collect
@@ -230,7 +245,7 @@ def stages(out: Path, names: list[str], device: str = "auto", install: bool = Fa
                 from yawil.pipelines.dagger import DaggerConfig, DaggerRun
 
                 round0 = checkpoint_of(recipe(r.base)) if r.base else None
-                dcfg = DaggerConfig(model=r.model, expert_data=str(data), workers=2, threads=0, round0=round0,
+                dcfg = DaggerConfig(model=r.model, expert_data=str(data), workers=2, threads=0, round0=round0, seed=seed,
                                     train_args={**r.train_args, "device": device}, **r.dagger)
                 ckpt = DaggerRun(run, dcfg, progress=progress).run()
             else:
@@ -238,11 +253,11 @@ def stages(out: Path, names: list[str], device: str = "auto", install: bool = Fa
                 from yawil.learn.loop import train
 
                 cfg = TrainConfig.from_dict({"model": r.model, "data": [str(data)], "out": str(run), "batch_size": 64,
-                                             "max_steps": r.steps, "seed": 0, "device": device, "progress": progress,
+                                             "max_steps": r.steps, "seed": seed, "device": device, "progress": progress,
                                              **r.train_args}, "zoo")
                 train(cfg, resume=(run / "last.pt").is_file())
                 ckpt = run / "last.pt"
-            return {"checkpoint": str(ckpt), "wall_s": round(time.perf_counter() - t)}
+            return {"checkpoint": str(ckpt), "wall_s": round(time.perf_counter() - t), "seed": seed}
 
         return fn
 
@@ -279,8 +294,10 @@ def stages(out: Path, names: list[str], device: str = "auto", install: bool = Fa
             marks = {k: read_marker(out / "stages" / f"{k}_{r.name}.json") or {} for k in ("train", "eval100", "demo")}
             ckpt = checkpoint_of(r)
             metrics = load_checkpoint(ckpt)["metrics"]
-            card = {"summary": r.summary, "commands": r.commands(str(data), str(out / "runs" / r.name)),
-                    "made_by": f"yawil reproduce --profile zoo --out {out}", "commit": git_commit(),
+            seeded = f" --seed {seed}" if seed else ""
+            card = {"summary": r.summary + (f" (training seed {seed})" if seed else ""),
+                    "commands": r.commands(str(data), str(out / "runs" / r.name), seed),
+                    "made_by": f"yawil reproduce --profile zoo --out {out}{seeded}", "commit": git_commit(),
                     "data": {"path": str(data), "town": "town01", "weathers": "train", "frames": EXPERT_FRAMES, "seed": 0,
                              "guidance_reference": r.guidance_reference},
                     "wall_s": {"train": marks["train"].get("wall_s"), "eval100": marks["eval100"].get("wall_s")},

@@ -240,10 +240,34 @@ def test_pedestrian_stops_join_the_lead_stop_class_when_asked() -> None:
     privileged = torch.tensor([[0.0, 50.0, 0.0, 0.0, ped], [3.0, 50.0, 0.0, 0.0, ped],
                                [5.0, 50.0, 0.0, 0.0, cruise], [0.5, nan, nan, -1.0, ped]])
     assert lead_stop_targets(privileged)[0].tolist() == [0.0, 0.0, 0.0, 0.0]
-    close, seen = lead_stop_targets(privileged, pedestrians=True)
+    close, seen = lead_stop_targets(privileged, ("pedestrian",))
     assert close.tolist() == [1.0, 0.0, 0.0, 1.0] and seen.tolist() == [True, True, True, True]
     with pytest.raises(ValueError, match="fifth column"):
-        lead_stop_targets(privileged[:, :4], pedestrians=True)
+        lead_stop_targets(privileged[:, :4], ("pedestrian",))
+
+
+def test_stop_reasons_label_the_expert_stops_of_each_reason_named() -> None:
+    """`stop_reasons`: the expert's stops for crossing traffic ("vehicle" with no standing car ahead) and at
+    junctions join the class; a reason not named, or a slow-down above 1 m/s, does not; stop_pedestrians is
+    "pedestrian" among them."""
+    from yawil.data.schema import SPEED_REASONS
+    from yawil.learn.config import TrainConfig
+    from yawil.learn.loss import lead_stop_targets
+
+    veh, junc, ped = (float(SPEED_REASONS.index(r)) for r in ("vehicle", "junction", "pedestrian"))
+    # stop for a crossing car (no lead within 12 m); junction wait; junction slow-down at 2 m/s; pedestrian stop
+    privileged = torch.tensor([[0.0, 50.0, 5.0, 0.0, veh], [0.3, math.nan, math.nan, -1.0, junc],
+                               [2.0, 50.0, 5.0, 0.0, junc], [0.0, 50.0, 5.0, 0.0, ped]])
+    assert lead_stop_targets(privileged)[0].tolist() == [0.0, 0.0, 0.0, 0.0]
+    close, seen = lead_stop_targets(privileged, ("vehicle", "junction"))
+    assert close.tolist() == [1.0, 1.0, 0.0, 0.0] and seen.tolist() == [True, True, True, True]
+    both = TrainConfig(stop_reasons=["junction", "pedestrian"], stop_pedestrians=True, aux_weight=0.5)
+    assert both.stop_label_reasons() == ("junction", "pedestrian")
+    for bad in (["cruise"], ["vehicle", "vehicle"], "vehicle"):
+        with pytest.raises(ValueError, match="stop_reasons"):
+            TrainConfig(stop_reasons=bad, aux_weight=0.5)  # type: ignore[arg-type]
+    with pytest.raises(ValueError, match="stop_reasons"):
+        TrainConfig(stop_reasons=["vehicle"])  # no aux loss: nothing would learn them
 
 
 def test_stop_pedestrians_needs_the_aux_loss_and_the_lead_stop_output(tmp_path: Path) -> None:
@@ -254,4 +278,6 @@ def test_stop_pedestrians_needs_the_aux_loss_and_the_lead_stop_output(tmp_path: 
         TrainConfig(stop_pedestrians=True)
     with pytest.raises(ValueError, match="lead_stop=true"):
         check_model_fits(TrainConfig(stop_pedestrians=True, aux_weight=0.5, model_args={"aux": True}))
+    with pytest.raises(ValueError, match="lead_stop=true"):
+        check_model_fits(TrainConfig(stop_reasons=["junction"], aux_weight=0.5, model_args={"aux": True}))
     check_model_fits(TrainConfig(stop_pedestrians=True, aux_weight=0.5, model_args={"aux": True, "lead_stop": True}))

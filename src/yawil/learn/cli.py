@@ -54,6 +54,8 @@ _OPTIONS: tuple[tuple[str, str, Any, str], ...] = (
      "weight of the aux loss on the expert's privileged labels (needs --model-arg aux=true; default 0)"),
     ("--stop-pedestrians", "stop_pedestrians", _true_false,
      "true: the lead-stop output also learns the expert's stops for pedestrians (default false)"),
+    ("--stop-reasons", "stop_reasons", lambda t: [r.strip() for r in t.split(",") if r.strip()],
+     "comma-separated expert reasons (vehicle, pedestrian, junction) whose stops the lead-stop output also learns"),
     ("--aux-loss", "aux_loss", str,
      "same (default: --loss) | l1 | mse | smooth_l1: criterion of the aux head's regression terms"),
     ("--brake-loss", "brake_loss", str,

@@ -18,6 +18,7 @@ from yawil.policy.runtime import DEVICES, PRECISIONS, SWITCHES
 
 LOSSES = ("l1", "mse", "smooth_l1")
 BRAKE_LOSSES = ("same", "bce")
+STOP_LABEL_REASONS = ("vehicle", "pedestrian", "junction")  # expert reasons `stop_reasons` may name (schema's)
 # What may change when a run is resumed: budgets and where/how it runs, never what it learns from.
 RESUMABLE_CHANGES = frozenset(
     {"epochs", "max_steps", "max_minutes", "device", "precision", "channels_last", "workers", "threads", "progress",
@@ -79,6 +80,11 @@ class TrainConfig:
     # cell's pedestrian collisions come at cruise speed, the head never slowing (docs/experiments.md, 2026-12-07
     # second session); a rare event is what a weighted class learns, as the vehicle stop did. Ours.
     stop_pedestrians: bool = False
+    # The same for the expert's stops of each reason named (STOP_LABEL_REASONS; "pedestrian" is stop_pedestrians):
+    # "vehicle" and "junction" add the stops for crossing and turning traffic, which the lead-stop label (a standing
+    # car ahead) leaves out: the shipped model's Dense vehicle collisions (docs/experiments.md, 2026-12-07 seventh
+    # session; TransFuser++'s brake class is set for every reason its expert brakes). Ours.
+    stop_reasons: list[str] = field(default_factory=list)
     # "same": the brake is one of the three action components under `loss`; "bce": binary cross-entropy of
     # the (sigmoid) brake output against the expert's brake. L1's optimum is the conditional median, which
     # for a brake pressed on ~7 % of the frames is 0 wherever the image leaves doubt; BCE's is the mean.
@@ -149,11 +155,21 @@ class TrainConfig:
         need(isinstance(self.stop_pedestrians, bool), "stop_pedestrians", "true or false")
         need(not self.stop_pedestrians or self.aux_weight > 0, "stop_pedestrians",
              "false unless aux_weight > 0 (it labels the aux head's lead-stop output)")
+        need(isinstance(self.stop_reasons, list) and all(r in STOP_LABEL_REASONS for r in self.stop_reasons)
+             and len(set(self.stop_reasons)) == len(self.stop_reasons), "stop_reasons",
+             f"a list of distinct expert reasons among {', '.join(STOP_LABEL_REASONS)}")
+        need(not self.stop_reasons or self.aux_weight > 0, "stop_reasons",
+             "empty unless aux_weight > 0 (they label the aux head's lead-stop output)")
         need(_is_num(self.ema) and 0.0 <= self.ema < 1.0, "ema", "a decay in [0, 1) (0: no weight average)")
         need(self.init_from is None or (isinstance(self.init_from, str) and bool(self.init_from)), "init_from",
              "None or a checkpoint path")
         need(isinstance(self.keep_steps, list) and all(_is_int(v) and v >= 1 for v in self.keep_steps), "keep_steps",
              "a list of step counts >= 1")
+
+    def stop_label_reasons(self) -> tuple[str, ...]:
+        """The expert reasons whose stops are positives of the lead-stop output (`stop_reasons`, and
+        "pedestrian" where `stop_pedestrians`, its older spelling)."""
+        return tuple(dict.fromkeys([*self.stop_reasons, *(["pedestrian"] if self.stop_pedestrians else [])]))
 
     def to_dict(self) -> dict[str, Any]:
         d = asdict(self)

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Callable
+from collections.abc import Callable, Sequence
 from typing import Any
 
 import torch
@@ -52,7 +52,7 @@ def compute_loss(
             raise ValueError("aux_weight > 0 needs the privileged labels of the samples (schema-2 data) and the norm")
         aux_criterion = cfg.loss if cfg.aux_loss == "same" else cfg.aux_loss
         loss = loss + cfg.aux_weight * aux_loss(out.aux.float(), batch.privileged, norm, aux_criterion,
-                                                cfg.stop_pedestrians)
+                                                cfg.stop_label_reasons())
     return loss, pred, out
 
 
@@ -79,27 +79,28 @@ def aux_targets(privileged: Tensor, norm: Norm) -> tuple[Tensor, Tensor]:
 LEAD_STOP_POS_WEIGHT = 10.0
 
 
-# The expert's target under which a pedestrian frame is a stop (`stop_pedestrians`; validation's STOP_TARGET).
-PEDESTRIAN_STOP_TARGET = 1.0  # m/s
-PEDESTRIAN = float(SPEED_REASONS.index("pedestrian"))
+# The expert's target under which a frame of one of `stop_reasons` is a stop (validation's STOP_TARGET).
+REASON_STOP_TARGET = 1.0  # m/s
 
 
-def lead_stop_targets(privileged: Tensor, pedestrians: bool = False) -> tuple[Tensor, Tensor]:
+def lead_stop_targets(privileged: Tensor, reasons: Sequence[str] = ()) -> tuple[Tensor, Tensor]:
     """(1 where a vehicle under LEAD_STOP_SPEED is within LEAD_STOP_DISTANCE ahead, mask of known), both [B];
-    with `pedestrians` also 1 where the expert stops for a pedestrian (its reason, a target under
-    PEDESTRIAN_STOP_TARGET: privileged's fifth column)."""
+    also 1 where the expert stops (a target under REASON_STOP_TARGET) for one of `reasons` (its reason:
+    privileged's fifth column; the training config's `stop_label_reasons()`)."""
     ld, ls = privileged[:, 1], privileged[:, 2]
     known = ld.isfinite() & ls.isfinite()
     close = known & (ld < LEAD_STOP_DISTANCE) & (ls < LEAD_STOP_SPEED)
-    if pedestrians:
+    if reasons:
         if privileged.shape[1] < 5:
-            raise ValueError("stop_pedestrians needs the expert's reason of each sample (privileged's fifth column)")
-        ped = (privileged[:, 4] == PEDESTRIAN) & (privileged[:, 0] < PEDESTRIAN_STOP_TARGET)
-        close, known = close | ped, known | ped
+            raise ValueError(f"stop_reasons {', '.join(reasons)} need the expert's reason of each sample "
+                             "(privileged's fifth column)")
+        ids = torch.tensor([float(SPEED_REASONS.index(r)) for r in reasons], device=privileged.device)
+        stop = torch.isin(privileged[:, 4], ids) & (privileged[:, 0] < REASON_STOP_TARGET)
+        close, known = close | stop, known | stop
     return close.float(), known
 
 
-def aux_loss(aux: Tensor, privileged: Tensor, norm: Norm, loss: str = "l1", pedestrians: bool = False) -> Tensor:
+def aux_loss(aux: Tensor, privileged: Tensor, norm: Norm, loss: str = "l1", reasons: Sequence[str] = ()) -> Tensor:
     """Mean over the known labels: regression terms with the action loss's criterion, BCE for the light and,
     for heads with the lead-stop output (models.base.aux_outputs), weighted BCE for it (`lead_stop_targets`)."""
     target, known = aux_targets(privileged, norm)
@@ -109,7 +110,7 @@ def aux_loss(aux: Tensor, privileged: Tensor, norm: Norm, loss: str = "l1", pede
     bce = torch.nn.functional.binary_cross_entropy_with_logits(aux[:, 3], target[:, 3], reduction="none") * w[:, 3]
     total, count = reg.sum() + bce.sum(), w.sum()
     if aux.shape[1] > len(AUX_NAMES):
-        close, seen = lead_stop_targets(privileged, pedestrians)
+        close, seen = lead_stop_targets(privileged, reasons)
         stop = torch.nn.functional.binary_cross_entropy_with_logits(
             aux[:, len(AUX_NAMES)], close, reduction="none",
             pos_weight=torch.tensor(LEAD_STOP_POS_WEIGHT, device=aux.device))  # fmt: skip

@@ -126,5 +126,6 @@ def check_model_fits(cfg: TrainConfig) -> None:
 
     if cfg.aux_weight > 0 and not models.registry.has_aux_head(cfg.model, **cfg.model_args):
         raise ValueError(f"aux_weight={cfg.aux_weight} but model {cfg.model} has no aux head (--model-arg aux=true)")
-    if cfg.stop_pedestrians and not cfg.model_args.get("lead_stop", False):
-        raise ValueError("stop_pedestrians labels the lead-stop output: build the model with --model-arg lead_stop=true")
+    if cfg.stop_label_reasons() and not cfg.model_args.get("lead_stop", False):
+        raise ValueError("stop_reasons (or stop_pedestrians) label the lead-stop output: build the model with "
+                         "--model-arg lead_stop=true")

@@ -58,7 +58,7 @@ def validate(
             stops += int(stop.sum())
             stops_seen += int((stop & (guess < STOP_TARGET)).sum())
             if out.aux.shape[1] > len(AUX_NAMES):
-                close, seen = lead_stop_targets(b.privileged, cfg.stop_pedestrians)
+                close, seen = lead_stop_targets(b.privileged, cfg.stop_label_reasons())
                 fired = seen & (torch.sigmoid(out.aux[:, len(AUX_NAMES)].float()) > LEAD_STOP_FIRES)
                 close_n += int(close.sum())
                 close_hit += int((fired & (close > 0)).sum())

@@ -64,8 +64,7 @@ class ZooRecipe:
             targs = " ".join(f"--train-arg '{k}={json.dumps(v)}'" for k, v in self.train_args.items())
             round0 = f" --round0 {recipe(self.base).checkpoint(str(Path(out).parent / self.base))}" if self.base else ""
             learner = drive_flags({k: v for k, v in d.items() if k in DRIVE_OPTIONS})  # how the learner drives its rounds
-            seeded = f" --seed {seed}" if seed else ""
-            return (f"yawil dagger --out {out}{seeded} --expert-data {data} --model {self.model}{round0} {flags} "
+            return (f"yawil dagger --out {out}{seed_flag(seed)} --expert-data {data} --model {self.model}{round0} {flags} "
                     f"--workers 2 --threads 2 {targs} {learner}").strip()
         margs = " ".join(f"--model-arg {k}={json.dumps(v)}" for k, v in self.train_args.get("model_args", {}).items())
         rest = " ".join(f"--{k.replace('_', '-')} {v}" for k, v in self.train_args.items() if k != "model_args")
@@ -84,6 +83,11 @@ class ZooRecipe:
         bases = [c.train_command(data, str(Path(out).parent / c.name), seed) for c in chain(self)[:-1]]
         bench = f"yawil bench --preset eval100 --agent {self.checkpoint(out)} --workers 2 {drive_flags(self.drive)}"
         return [collect, *bases, self.train_command(data, out, seed), bench.strip()]
+
+
+def seed_flag(seed: int) -> str:
+    """` --seed K` for a training seed other than the shipped models' 0, which their commands leave unsaid."""
+    return f" --seed {seed}" if seed else ""
 
 
 def _flag_value(value: Any) -> str:
@@ -220,8 +224,9 @@ def check_seed(out: Path, names: list[str], seed: int) -> None:
 
     for r in (c for n in names for c in chain(recipe(n))):
         marker = read_marker(out / "stages" / f"train_{r.name}.json")
-        if marker is not None and int(marker.get("seed", 0)) != seed:
-            raise ValueError(f"{out}: {r.name} was trained there with training seed {marker.get('seed', 0)}, "
+        done = None if marker is None else int(marker.get("seed", 0))
+        if done is not None and done != seed:
+            raise ValueError(f"{out}: {r.name} was trained there with training seed {done}, "
                              f"not {seed}; give each training seed its own --out")
 
 
@@ -294,10 +299,9 @@ def stages(out: Path, names: list[str], device: str = "auto", install: bool = Fa
             marks = {k: read_marker(out / "stages" / f"{k}_{r.name}.json") or {} for k in ("train", "eval100", "demo")}
             ckpt = checkpoint_of(r)
             metrics = load_checkpoint(ckpt)["metrics"]
-            seeded = f" --seed {seed}" if seed else ""
             card = {"summary": r.summary + (f" (training seed {seed})" if seed else ""),
                     "commands": r.commands(str(data), str(out / "runs" / r.name), seed),
-                    "made_by": f"yawil reproduce --profile zoo --out {out}{seeded}", "commit": git_commit(),
+                    "made_by": f"yawil reproduce --profile zoo --out {out}{seed_flag(seed)}", "commit": git_commit(),
                     "data": {"path": str(data), "town": "town01", "weathers": "train", "frames": EXPERT_FRAMES, "seed": 0,
                              "guidance_reference": r.guidance_reference},
                     "wall_s": {"train": marks["train"].get("wall_s"), "eval100": marks["eval100"].get("wall_s")},

@@ -41,7 +41,7 @@ from yawil.policy.drive import (  # noqa: F401  (re-exported: the names users an
     SpeedControl,
     StopRelease,
 )
-from yawil.policy.engine import Engine, make_engine
+from yawil.policy.engine import Calibration, Engine, make_engine
 from yawil.policy.inputs import (
     InputSpec,
     ModelInputs,
@@ -78,7 +78,7 @@ class Agent:
 
     `drive`: the drive-time settings (`DriveSettings`); instead, its fields may be given as keywords
     (speed_control="stop", stop_release=10, yaw_noise_deg=..., post=...). `engine`: where the network runs
-    (`yawil.policy.engine`: auto, torch, openvino, onnxruntime). `attention`: keep the attention maps in `last`
+    (`yawil.policy.engine`: auto, torch, openvino, onnxruntime, openvino-int8). `attention`: keep the attention maps in `last`
     (heat maps, videos); the benchmark leaves them. `seed`: the noise stream of slot 0 (the benchmark gives each
     episode its own with `reset(seed=...)`)."""
 
@@ -117,12 +117,21 @@ class Agent:
                 f"the normalisation has {len(norm.guidance_mean)} guidance values, "
                 f"the model expects {getattr(model, 'guidance_dim', '?')}"
             )
-        self.engine: Engine = make_engine(self.model, self.runtime, engine)
+        self.engine: Engine = make_engine(self.model, self.runtime, engine, self._calibration())
         self.attention = bool(attention)
         self.seed = int(seed)
         self.states: list[EpisodeState] = [self.drive.episode(self.seed) for _ in range(slots)]
         self.outputs: list[StepOutput | None] = [None] * slots
         self.checkpoint_path: str | None = None
+
+    def _calibration(self) -> Calibration:
+        """What an int8 engine calibrates on: frames the expert drives, prepared as this agent prepares its own
+        (`yawil.policy.quantize.expert_calibration`); made only if the engine needs them and has none cached."""
+        from yawil.policy.quantize import CALIBRATION_FRAMES, CALIBRATION_SEED, expert_calibration
+
+        about = {"frames": CALIBRATION_FRAMES, "seed": CALIBRATION_SEED, "norm": self.norm.to_dict(),
+                 "guidance": self.guidance_config.to_dict(), "kind": self.kind, "command": self.uses_command}
+        return (lambda: expert_calibration(self.spec, self.guidance_config)), about
 
     @classmethod
     def from_checkpoint(cls, path: str | os.PathLike[str], device: str = "cpu", **options: Any) -> Agent:

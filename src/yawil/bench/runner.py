@@ -64,7 +64,7 @@ class AgentSpec:
     # process loads its own copy. The expert has no model and ignores it.
     device: str = "cpu"
     stop_release: float = 0.0  # s standing before the "stop" mode's lead-stop class is ignored (yawil.agent.StopRelease)
-    engine: str = "auto"  # where a learned agent's network runs (yawil.policy.engine: auto, torch, openvino, onnxruntime)
+    engine: str = "auto"  # where a learned agent's network runs (yawil.policy.engine: auto, torch, openvino, ..., ENGINES)
     stop_creep: float = 0.0  # m after which the release's creep ends (yawil.policy.drive.StopRelease; 0: its 2 s)
     stop_hold: float = 0.0  # s the "stop" mode's stop outlasts its class (yawil.policy.drive.StopHold; 0: none)
     stop_gate: float = 0.0  # m of predicted lead distance under which a stand does not count toward the release
@@ -429,7 +429,7 @@ def drive_episode(agent: DrivingAgent, episode: Episode, camera: bool = True,
     exactly as `yawil bench` drives it, and return its record: success, reason, collisions, km driven, lane and
     red-light counts, the trajectory (docs/benchmark.md). `world`: reuse one (default: a new embedded world)."""
     drive = agent.drive.as_dict() if hasattr(agent, "drive") else {}
-    engine = getattr(getattr(agent, "engine", None), "name", "auto")
+    engine = getattr(getattr(agent, "engine", None), "option", "auto")
     name = str(getattr(agent, "checkpoint_path", None) or getattr(agent, "name", "agent"))
     spec = AgentSpec(name, engine=engine, **{k: v for k, v in drive.items() if k in AgentSpec.__dataclass_fields__})
     driver = EpisodeDriver(spec, camera, world_factory=(lambda: world) if world is not None else None,

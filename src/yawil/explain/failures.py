@@ -114,6 +114,8 @@ def load_agent_of(info: Mapping[str, Any], checkpoint: str | None = None, where:
     kw = {f.name: opts[f.name] for f in fields(DriveSettings) if f.name != "post" and f.name in opts}
     label = str(opts.get("engine", "auto"))
     engine, _, precision = label.partition("-")
+    if precision == "int8":  # an engine of its own (yawil.policy.quantize); its float parts run as the machine can
+        engine, precision = label, ""
     spec = AgentSpec(name, engine=engine or "auto", **kw)
     try:
         path = spec.checkpoint

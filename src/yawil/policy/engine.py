@@ -8,8 +8,11 @@ Engines (chosen by measurement, docs/decisions.md "Inference engines"; figures i
   on CPUs with native bf16, the CUDA engine.
 - `onnxruntime`: the model exported to ONNX (batch-norm folded by ORT's graph optimiser), fp32.
 - `openvino` (opt-in, `pip install openvino`): the model converted by OpenVINO, bf16 where the CPU has native
-  bf16: the fastest at batch 1 on the CPUs measured, but a process that has run it crashed (SIGSEGV) at a later
-  fork in the test suite, so it is never chosen by `auto`.
+  bf16: the fastest float engine at batch 1 on the CPUs measured, but a process that has run it crashed (SIGSEGV)
+  at a later fork in the test suite, so it is never chosen by `auto`.
+- `openvino-int8` (opt-in, `pip install openvino nncf`): the same graph with int8 convolutions, quantized after
+  training on expert frames (`yawil.policy.quantize`): a different driver from the float engines (close, not
+  equal), so it is only used when asked for and its label goes into every record.
 `auto` picks torch on a CPU with native bf16 and on CUDA, onnxruntime on any other CPU: on the CPUs measured
 these are the fastest engines whose row of a batch does not depend on the other rows or the batch size (bit for
 bit), which the benchmark's determinism needs (an episode drives the same alone or among others); torch fp32 is
@@ -24,6 +27,7 @@ from __future__ import annotations
 import io
 import warnings
 from abc import ABC, abstractmethod
+from collections.abc import Callable
 from dataclasses import dataclass
 from typing import Any
 
@@ -73,6 +77,11 @@ def graph_module(model: Any) -> torch.nn.Module:
     return Flat().eval()
 
 
+Calibration = tuple[Callable[[], list[list[np.ndarray]]], dict[str, Any]]
+"""What an int8 engine is calibrated on: a maker of frames (input lists, batch 1 each) and what describes them
+(for the cache key)."""
+
+
 class Engine(ABC):
     """Runs one network on a batch of prepared inputs."""
 
@@ -83,6 +92,11 @@ class Engine(ABC):
     def label(self) -> str:
         """engine-precision, as records and tables name it (e.g. openvino-bf16)."""
         return f"{self.name}-{self.precision}"
+
+    @property
+    def option(self) -> str:
+        """The --engine value that makes this engine here (int8 is an engine of its own, the rest a precision)."""
+        return self.label if self.precision == "int8" else self.name
 
     @abstractmethod
     def run(self, x: ModelInputs, attention: bool = False) -> NetOutput:
@@ -112,8 +126,10 @@ class GraphEngine(Engine):
     """A traced graph run by OpenVINO or ONNX Runtime on the CPU, one thread pool of `threads` (torch's count)."""
 
     def __init__(self, model: torch.nn.Module, kind: str, precision: str, threads: int,
-                 image_size: tuple[int, int] = (88, 200)) -> None:
+                 image_size: tuple[int, int] = (88, 200), calibration: Calibration | None = None,
+                 float_hint: str = "bf16") -> None:
         self.name, self.precision, self.threads = kind, precision, max(1, int(threads))
+        self._hint = {"bf16": "bf16", "fp32": "f32", "int8": "bf16" if float_hint == "bf16" else "f32"}[precision]
         self.inputs = input_names(model)
         self.outputs = graph_outputs(model, image_size)
         example = tuple(example_inputs(model, 1, image_size=image_size).values())
@@ -126,6 +142,8 @@ class GraphEngine(Engine):
 
                 self._ov = ov
                 self._graph = ov.convert_model(flat, example_input=example)
+                if precision == "int8":
+                    self._graph = self._quantized(calibration)
             else:
                 buf = io.BytesIO()
                 dynamic = {n: {0: "batch"} for n in self.inputs + self.outputs}
@@ -133,6 +151,17 @@ class GraphEngine(Engine):
                                   output_names=self.outputs, dynamic_axes=dynamic, opset_version=17, dynamo=False)
                 self._onnx = buf.getvalue()
         self._compiled: dict[int, Any] = {}
+
+    def _quantized(self, calibration: Calibration | None) -> Any:
+        """The batch-1 graph with int8 convolutions (cached by weights, shapes and calibration)."""
+        from yawil.policy.quantize import graph_key, int8_graph
+
+        if calibration is None:
+            raise ValueError("engine 'openvino-int8' needs calibration frames (an Agent gives them)")
+        make, about = calibration
+        graph = self._graph.clone()
+        graph.reshape({i: [1, *shape] for i, shape in enumerate(self._shapes)})
+        return int8_graph(graph, make, graph_key(graph, about))
 
     def _session(self, batch: int) -> Any:
         """The compiled graph: OpenVINO one per batch size (static shapes), ONNX Runtime one for all."""
@@ -145,9 +174,8 @@ class GraphEngine(Engine):
         if self.name == "openvino":
             graph = self._graph.clone()
             graph.reshape({i: [batch, *shape] for i, shape in enumerate(self._shapes)})
-            hint = "bf16" if self.precision == "bf16" else "f32"
             compiled = self._ov.Core().compile_model(graph, "CPU", {
-                "INFERENCE_NUM_THREADS": self.threads, "INFERENCE_PRECISION_HINT": hint, "NUM_STREAMS": 1,
+                "INFERENCE_NUM_THREADS": self.threads, "INFERENCE_PRECISION_HINT": self._hint, "NUM_STREAMS": 1,
                 "PERFORMANCE_HINT": "LATENCY", "ENABLE_CPU_PINNING": False})  # pinned, two workers share core 0
             return compiled.create_infer_request()
         import onnxruntime as ort
@@ -191,6 +219,11 @@ def resolve_engine(name: str, runtime: Runtime) -> tuple[str, str]:
         name = "torch" if runtime.precision == "bf16" else "onnxruntime"
         if name == "torch":
             return name, runtime.precision
+    if name == "openvino-int8":
+        from yawil.policy.quantize import require_nncf
+
+        require_nncf()
+        return "openvino", "int8"
     if name == "openvino":
         import importlib.util
 
@@ -205,9 +238,12 @@ def image_size(model: Any) -> tuple[int, int]:
     return (int(size[0]), int(size[1])) if size else (88, 200)
 
 
-def make_engine(model: torch.nn.Module, runtime: Runtime, name: str = "auto") -> Engine:
-    """The engine `name` for a model in eval mode (see the module's docstring)."""
+def make_engine(model: torch.nn.Module, runtime: Runtime, name: str = "auto",
+                calibration: Calibration | None = None) -> Engine:
+    """The engine `name` for a model in eval mode (see the module's docstring); `calibration` only for
+    openvino-int8."""
     kind, precision = resolve_engine(name, runtime)
     if kind == "torch":
         return TorchEngine(model, runtime)
-    return GraphEngine(model, kind, precision, torch.get_num_threads(), image_size(model))
+    return GraphEngine(model, kind, precision, torch.get_num_threads(), image_size(model), calibration,
+                       float_hint=runtime.precision)

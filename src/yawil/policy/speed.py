@@ -23,7 +23,7 @@ from typing import Any
 SPEED_CONTROLS: tuple[str, ...] = ("target", "lead", "stop")
 # the drive options a DAgger learner takes (a card names them too: yawil.zoo.DRIVE_KEYS, kept apart by the import rule)
 DRIVE_OPTIONS: tuple[str, ...] = ("speed_control", "stop_release", "stop_creep", "stop_hold", "stop_gate", "light_hold")
-ENGINES: tuple[str, ...] = ("auto", "torch", "openvino", "onnxruntime")
+ENGINES: tuple[str, ...] = ("auto", "torch", "openvino", "onnxruntime", "openvino-int8")
 
 
 def speed_control_mode(value: bool | str | None) -> str | None:
@@ -124,7 +124,8 @@ def add_engine_arguments(p: argparse.ArgumentParser, batched: bool = False) -> N
     p.add_argument("--engine", default="auto", choices=ENGINES,
                    help="where a learned agent's network runs: auto (default: torch in bf16 on a CPU with native bf16 "
                         "and on CUDA, onnxruntime in fp32 on other CPUs), or one of them (openvino: opt-in, pip install "
-                        "openvino); the engine and its precision are part of the results (docs/decisions.md)")
+                        "openvino; openvino-int8: int8 convolutions calibrated on expert frames, pip install openvino "
+                        "nncf); the engine and its precision are part of the results (docs/decisions.md)")
     if batched:
         p.add_argument("--episodes-per-worker", type=int, default=None, metavar="K",
                        help="episodes each worker drives at once, one batched forward per step (default 1; K > 1 is "

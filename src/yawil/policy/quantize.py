@@ -20,6 +20,7 @@ from __future__ import annotations
 
 import hashlib
 import json
+import logging
 import os
 import re
 import tempfile
@@ -89,6 +90,7 @@ def int8_graph(graph: Any, calibration: Callable[[], list[list[np.ndarray]]], ke
     if xml.is_file() and weights.is_file():
         return core.read_model(str(xml), str(weights))
     frames = calibration()
+    nncf.set_log_level(logging.WARNING)  # its INFO lines list every operation left in float: noise to a bench user
     quantized = nncf.quantize(graph, nncf.Dataset(frames), subset_size=len(frames), model_type=None,
                               fast_bias_correction=True, ignored_scope=nncf.IgnoredScope(types=list(IGNORED_TYPES), validate=False))
     with tempfile.TemporaryDirectory() as tmp:  # OpenVINO writes a pair of files: each is renamed in, .xml last

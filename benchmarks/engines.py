@@ -8,7 +8,9 @@ Test frames: `--frames` frames of town01 driven by the expert with seed 1 (`yawi
 the int8 engine calibrates on seed 0's, so it is not judged on the frames it was calibrated on). For each engine and
 batch size: the median time per frame of the forward pass (`Engine.run`, inputs prepared beforehand) over
 `--runs` passes, whether each row of a batch equals the same frame at batch 1 bit for bit, and the mean and 99th
-percentile of |action - float32 action| per action (steer, throttle, brake) against torch fp32. Prints a markdown
+percentile of |action - float32 action| per action (steer, throttle, brake) against torch fp32, and on how many
+frames the two outputs the drive decides by (the lead-stop class and the light output, at P 0.5) fall on the other
+side of the threshold from fp32 (with the fp32 and engine counts of lead-stop positives). Prints a markdown
 table with the CPU model and the load average.
 """
 
@@ -27,8 +29,13 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 
 from yawil.agent import Agent  # noqa: E402
+from yawil.models.base import AUX_NAMES  # noqa: E402
+from yawil.policy.drive import LIGHT_OUTPUT  # noqa: E402
 from yawil.policy.inputs import ModelInputs  # noqa: E402
 from yawil.policy.quantize import expert_calibration  # noqa: E402
+
+
+LEAD_STOP = len(AUX_NAMES)  # the lead-stop logit follows the aux outputs (yawil.models.base.aux_width)
 
 
 def cpu_model() -> str:
@@ -56,19 +63,28 @@ def main() -> int:
     ref_agent = Agent.from_checkpoint(args.agent, precision="fp32", channels_last="off", engine="torch")
     names = ref_agent.spec.names()
     frames = expert_calibration(ref_agent.spec, ref_agent.guidance_config, frames=args.frames, seed=1)
-    ref = np.concatenate([ref_agent.engine.run(stack([f], names)).actions for f in frames])
+    ref_out = [ref_agent.engine.run(stack([f], names)) for f in frames]
+    ref = np.concatenate([o.actions for o in ref_out])
+    ref_aux = None if ref_out[0].aux is None else np.concatenate([o.aux for o in ref_out])
     load0 = os.getloadavg()
     print(f"{args.agent}, {args.frames} town01 expert frames (seed 1), {args.threads} thread(s); CPU: {cpu_model()}, "
           f"{os.cpu_count()} cores; load average before: {load0[0]:.2f}")
-    print("\n| engine | batch | ms per frame | rows = batch 1 | mean abs diff vs fp32 (steer, throttle, brake) | p99 |")
-    print("|---|---|---|---|---|---|")
+    print("\n| engine | batch | ms per frame | rows = batch 1 | mean abs diff vs fp32 (steer, throttle, brake) | p99 | "
+          "decisions moved: lead-stop, light |")
+    print("|---|---|---|---|---|---|---|")
     for name in args.engines.split(","):
         agent = Agent.from_checkpoint(args.agent, engine=name)
         engine = agent.engine
         single = None
         for b in batches:
-            out = np.concatenate([engine.run(stack(frames[i:i + b], names)).actions
-                                  for i in range(0, len(frames) - len(frames) % b, b)])
+            runs = [engine.run(stack(frames[i:i + b], names)) for i in range(0, len(frames) - len(frames) % b, b)]
+            out = np.concatenate([r.actions for r in runs])
+            moved = "n/a (no aux head)"
+            if ref_aux is not None and ref_aux.shape[1] > LEAD_STOP:
+                aux = np.concatenate([r.aux for r in runs])
+                fires = [(a[:, [LEAD_STOP, LIGHT_OUTPUT]] > 0) for a in (aux, ref_aux[:len(aux)])]  # logit > 0: P > 0.5
+                flips = (fires[0] != fires[1]).sum(0)
+                moved = f"{flips[0]} of {len(aux)} ({fires[1][:, 0].sum()} -> {fires[0][:, 0].sum()}), {flips[1]}"
             if single is None:
                 single = out
             same = np.array_equal(out, single[:len(out)])
@@ -83,7 +99,7 @@ def main() -> int:
             diff = np.abs(out - ref[:len(out)])
             print(f"| {engine.label} | {b} | {statistics.median(times):.2f} | {'yes' if same else 'no'} | "
                   f"{', '.join(f'{v:.4f}' for v in diff.mean(0))} | "
-                  f"{', '.join(f'{v:.4f}' for v in np.percentile(diff, 99, axis=0))} |", flush=True)
+                  f"{', '.join(f'{v:.4f}' for v in np.percentile(diff, 99, axis=0))} | {moved} |", flush=True)
     load1 = os.getloadavg()
     print(f"\nload average after: {load1[0]:.2f}")
     return 0

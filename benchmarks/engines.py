@@ -34,7 +34,6 @@ from yawil.policy.drive import LIGHT_OUTPUT  # noqa: E402
 from yawil.policy.inputs import ModelInputs  # noqa: E402
 from yawil.policy.quantize import expert_calibration  # noqa: E402
 
-
 LEAD_STOP = len(AUX_NAMES)  # the lead-stop logit follows the aux outputs (yawil.models.base.aux_width)
 
 

@@ -241,3 +241,26 @@ def test_trajectory_episode_names_its_weather() -> None:
     assert choose_episodes([], "training", "dense/3/0") == ("dense", None, 3, 0)
     with pytest.raises(ValueError, match="task/weather/route/seed"):
         choose_episodes([], "training", "dense/3")
+
+
+def test_short_seeds_names_a_seed_stopped_part_way() -> None:
+    """A protocol cell whose seed holds fewer episodes than the protocol drives says so, per model of a pooled
+    column (a model that drove none of a seed the others drove counts 0); a whole seed is not named."""
+    from yawil.bench.report import short_seeds
+    from yawil.bench.suites import episodes
+
+    full = len(episodes("nocrash", ["new-town-weather"], ["dense"], seeds=1))
+    assert full == 50  # 25 routes in the condition's 2 weathers
+
+    def recs(agent: str, counts: dict[int, int]) -> list[dict[str, object]]:
+        return [{"suite": "nocrash", "task": "dense", "condition": "new-town-weather", "seed": s, "agent": agent}
+                for s, n in counts.items() for _ in range(n)]
+
+    assert short_seeds(recs("runs/x/a/train/round_03/last.pt", {0: 50, 1: 50})) == []
+    assert short_seeds(recs("runs/x/a/train/round_03/last.pt", {0: 50, 1: 48})) == ["seed 1: 48 of 50"]
+    pooled = recs("runs/x/a/train/round_03/last.pt", {0: 50, 1: 50, 2: 50}) + recs("runs/x/b/train/round_03/last.pt",
+                                                                                  {0: 50, 1: 48})
+    assert short_seeds(pooled) == ["seed 1 of b: 48 of 50", "seed 2 of b: 0 of 50"]
+    zoo = recs("zoo:m", {0: 50}) + recs("runs/y/last.pt", {0: 10})
+    assert short_seeds(zoo) == ["seed 0 of y: 10 of 50"]
+    assert short_seeds([{"suite": "nosuch", "task": "dense", "condition": "training", "seed": 0}]) == []

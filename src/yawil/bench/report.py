@@ -116,8 +116,44 @@ def _header(first: Sequence[str], cols: Sequence[tuple[str, ResultSet]]) -> list
     return [*first, *(f"{CONDITIONS[c].title}: {rs.label}" for c, rs in cols)]
 
 
-def success_table(sets: Sequence[ResultSet]) -> Table:
-    """Table III: success rate (%) per task and condition, one column per agent."""
+def short_seeds(recs: Sequence[Mapping[str, Any]]) -> list[str]:
+    """The evaluation seeds of one cell (one task, one condition) that hold fewer episodes than the protocol drives
+    per seed (every route in every weather of the condition), as "seed S: N of M": a run stopped part-way pools
+    into a cell whose figure would otherwise read as the protocol's."""
+    from yawil.bench.suites import episodes
+
+    first = recs[0]
+    try:
+        full = len(episodes(first["suite"], [first["condition"]], [first["task"]], seeds=1))
+    except (KeyError, ValueError):
+        return []  # a suite or task this checkout does not know: nothing to compare with
+    per: dict[tuple[str, int], int] = {}  # by model too: a column may pool several training seeds' runs
+    for r in recs:
+        key = (str(r.get("agent", "")), int(r["seed"]))
+        per[key] = per.get(key, 0) + 1
+    agents, seeds = {a for a, _ in per}, {s for _, s in per}
+    for a in agents:  # a seed the other models of the column drove and this one did not
+        for s in seeds:
+            per.setdefault((a, s), 0)
+    several = len(agents) > 1
+    return [f"seed {s}{' of ' + _run_name(a) if several else ''}: {n} of {full}"
+            for (a, s), n in sorted(per.items()) if n < full]
+
+
+def _run_name(agent: str) -> str:
+    """A record's agent as a short name: a zoo model's name, or the run folder of a DAgger or training checkpoint
+    (RUN/train/round_03/last.pt, RUN/last.pt)."""
+    if agent.startswith("zoo:"):
+        return agent[4:]
+    parts = Path(agent).parts
+    if len(parts) >= 4 and parts[-3] == "train":
+        return parts[-4]
+    return parts[-2] if len(parts) >= 2 else agent
+
+
+def success_table(sets: Sequence[ResultSet], protocol: bool = False) -> Table:
+    """Table III: success rate (%) per task and condition, one column per agent. `protocol`: the columns are
+    protocol runs (docs/results.md), so a seed with fewer episodes than the protocol's is named in its cell."""
     conds, tasks = _present(sets)
     cols = _columns(sets, conds)
     rows = []
@@ -132,6 +168,8 @@ def success_table(sets: Sequence[ResultSet]) -> Table:
                 continue
             stat = task_success(recs, task.dynamic)
             extra = "" if stat.n_seeds == task.default_seeds else f" ({stat.n_seeds} seed{'s' * (stat.n_seeds > 1)})"
+            short = short_seeds(recs) if protocol else []
+            extra += f" (short: {'; '.join(short)})" if short else ""
             ok = sum(bool(r["success"]) for r in recs)
             lo, hi = wilson_interval(ok, len(recs))
             row.append(f"{stat.format(2)} [{lo:.0f}-{hi:.0f}]{extra}")
@@ -143,6 +181,8 @@ def success_table(sets: Sequence[ResultSet]) -> Table:
         "Success rate in %. Static tasks: best of 5 seeds; dynamic tasks: mean ± population std over 3 seeds; "
         "a cell with another number of seeds says so (one seed: no ±). [lo-hi]: the 95 % Wilson interval of the "
         "success rate over all the cell's episodes, seeds pooled. —: not run."
+        + (" short: a seed of the cell with fewer episodes than the protocol drives (a run stopped part-way)."
+           if protocol else "")
     )
     return Table("Table III: navigation success rate (%)", _header(["Task"], cols), rows, note, "success", records)
 

@@ -339,7 +339,7 @@ def render(rows: Sequence[Row], notes: str, manifest: str, attention: Mapping[st
            "whose column of Tables III and IV the row fills (—: an earlier model or drive, listed here and beside the "
            "paper only).", ""]
     if sets:
-        md += ["## Table III and IV (the columns: one agent each)", "", success_table(sets).markdown(),
+        md += ["## Table III and IV (the columns: one agent each)", "", success_table(sets, protocol=True).markdown(),
                violations_table(sets).markdown()]
         spread = seed_spread(rows)
         if spread:

@@ -29,12 +29,10 @@ import torch
 sys.path.insert(0, str(Path(__file__).resolve().parents[1] / "src"))
 
 from yawil.agent import Agent  # noqa: E402
-from yawil.models.base import AUX_NAMES  # noqa: E402
-from yawil.policy.drive import LIGHT_OUTPUT  # noqa: E402
+from yawil.models.base import LEAD_STOP_FIRES  # noqa: E402
+from yawil.policy.drive import LEAD_STOP_OUTPUT, LIGHT_FIRES, LIGHT_OUTPUT  # noqa: E402
 from yawil.policy.inputs import ModelInputs  # noqa: E402
 from yawil.policy.quantize import expert_calibration  # noqa: E402
-
-LEAD_STOP = len(AUX_NAMES)  # the lead-stop logit follows the aux outputs (yawil.models.base.aux_width)
 
 
 def cpu_model() -> str:
@@ -79,9 +77,10 @@ def main() -> int:
             runs = [engine.run(stack(frames[i:i + b], names)) for i in range(0, len(frames) - len(frames) % b, b)]
             out = np.concatenate([r.actions for r in runs])
             moved = "n/a (no aux head)"
-            if ref_aux is not None and ref_aux.shape[1] > LEAD_STOP:
+            if ref_aux is not None and ref_aux.shape[1] > LEAD_STOP_OUTPUT:
                 aux = np.concatenate([r.aux for r in runs])
-                fires = [(a[:, [LEAD_STOP, LIGHT_OUTPUT]] > 0) for a in (aux, ref_aux[:len(aux)])]  # logit > 0: P > 0.5
+                fires = [1 / (1 + np.exp(-a[:, [LEAD_STOP_OUTPUT, LIGHT_OUTPUT]])) > (LEAD_STOP_FIRES, LIGHT_FIRES)
+                         for a in (aux, ref_aux[:len(aux)])]  # the drive's own thresholds on the logits
                 flips = (fires[0] != fires[1]).sum(0)
                 moved = f"{flips[0]} of {len(aux)} ({fires[1][:, 0].sum()} -> {fires[0][:, 0].sum()}), {flips[1]}"
             if single is None:

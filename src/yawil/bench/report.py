@@ -10,6 +10,7 @@ Every output says what made it: the yawil version, the git commit, the command l
 from __future__ import annotations
 
 import base64
+import functools
 import io
 import json
 import math
@@ -120,11 +121,9 @@ def short_seeds(recs: Sequence[Mapping[str, Any]]) -> list[str]:
     """The evaluation seeds of one cell (one task, one condition) that hold fewer episodes than the protocol drives
     per seed (every route in every weather of the condition), as "seed S: N of M": a run stopped part-way pools
     into a cell whose figure would otherwise read as the protocol's."""
-    from yawil.bench.suites import episodes
-
     first = recs[0]
     try:
-        full = len(episodes(first["suite"], [first["condition"]], [first["task"]], seeds=1))
+        full = _protocol_episodes(first["suite"], first["condition"], first["task"])
     except (KeyError, ValueError):
         return []  # a suite or task this checkout does not know: nothing to compare with
     per: dict[tuple[str, int], int] = {}  # by model too: a column may pool several training seeds' runs
@@ -138,6 +137,14 @@ def short_seeds(recs: Sequence[Mapping[str, Any]]) -> list[str]:
     several = len(agents) > 1
     return [f"seed {s}{' of ' + _run_name(a) if several else ''}: {n} of {full}"
             for (a, s), n in sorted(per.items()) if n < full]
+
+
+@functools.cache
+def _protocol_episodes(suite: str, condition: str, task: str) -> int:
+    """Episodes the protocol drives per seed in one cell (read from the town's route file once per cell kind)."""
+    from yawil.bench.suites import episodes
+
+    return len(episodes(suite, [condition], [task], seeds=1))
 
 
 def _run_name(agent: str) -> str:

@@ -112,6 +112,7 @@ class SpeedControl:
 # STOP_CREEP seconds once it alone has held the car standing that long; then it is armed again.
 STOP_CREEP = 2.0  # s: TransFuser++'s creep is 1.5 s (carla_garage, sensor_agent.py); ours drives the head's target
 LIGHT_OUTPUT = AUX_NAMES.index("light_ahead")
+LEAD_STOP_OUTPUT = len(AUX_NAMES)  # the lead-stop logit follows the aux outputs (models.base.aux_width)
 LIGHT_FIRES = 0.5  # the light output's probability over which it fires, as the lead-stop class's
 STANDING = 0.1  # m/s: under this the car counts as standing (carla_garage's stuck detector uses the same)
 
@@ -360,8 +361,8 @@ class DriveSettings:
         light = float(1.0 / (1.0 + np.exp(-np.float64(aux[LIGHT_OUTPUT]))))  # a logit (BCE, yawil.learn.loss)
         if self.speed_control == "lead" and lead_distance < LEAD_SEEN:
             target = min(target, hazard_speed(lead_distance, lead_speed, LEAD_DECEL))
-        if len(aux) > len(AUX_NAMES):
-            lead_stop = float(1.0 / (1.0 + np.exp(-np.float64(aux[len(AUX_NAMES)]))))
+        if len(aux) > LEAD_STOP_OUTPUT:
+            lead_stop = float(1.0 / (1.0 + np.exp(-np.float64(aux[LEAD_STOP_OUTPUT]))))
             fires = self.speed_control == "stop" and lead_stop > LEAD_STOP_FIRES
             if state.stop_hold is not None:  # before the release: a creep also ignores a held stop
                 fires = state.stop_hold(fires)
